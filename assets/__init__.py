@@ -1,0 +1,1 @@
+"""Data files of jaxmm (robot descriptions), installed as the package ``jaxmm.assets``."""

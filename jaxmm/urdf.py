@@ -1,0 +1,229 @@
+"""URDF → ``Model``, parsed with yourdfpy: joint selection, locking and validation.
+
+Fixed joints are folded into their parent body (their links stay addressable as frames and
+their inertias become inertial elements of that body). Each moving joint starts a body; the
+joints not chosen for optimisation are locked at given values.
+"""
+
+import collections
+import io
+import os
+
+import jax.numpy as jnp
+import numpy as np
+import yourdfpy
+
+from jaxmm.model import Model, Topology, _lookup
+
+_MOVING = ("revolute", "continuous", "prismatic")
+
+
+class URDFError(ValueError):
+    """A URDF that cannot describe a floating-base tree robot, with the reason."""
+
+
+def read_urdf(source):
+    """Parse a URDF from a path (str or PathLike), an XML string, or a ``yourdfpy.URDF``.
+
+    Meshes are not loaded. Raises FileNotFoundError for a missing file and URDFError for
+    malformed XML or a document yourdfpy cannot read.
+    """
+    if isinstance(source, yourdfpy.URDF):
+        return source
+    if isinstance(source, str) and source.lstrip().startswith("<"):
+        stream, where = io.StringIO(source), "URDF string"
+    elif isinstance(source, (str, os.PathLike)):
+        path = os.fspath(source)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"URDF file not found: {path}")
+        stream, where = path, f"URDF file {path}"
+    else:
+        raise TypeError(f"expected a URDF path, XML string or yourdfpy.URDF, got {type(source).__name__}")
+    try:
+        return yourdfpy.URDF.load(
+            stream,
+            load_meshes=False,
+            build_scene_graph=False,
+            load_collision_meshes=False,
+            build_collision_scene_graph=False,
+        )
+    except Exception as error:  # lxml and yourdfpy raise many kinds; name the source
+        raise URDFError(f"could not parse {where}: {error}") from error
+
+
+def _transform(origin):
+    return np.eye(4) if origin is None else np.asarray(origin, dtype=float)
+
+
+def _validate_structure(robot, check_inertia):
+    links = [link.name for link in robot.links]
+    joints = [joint.name for joint in robot.joints]
+    for kind, names in (("link", links), ("joint", joints)):
+        repeated = sorted(n for n, c in collections.Counter(names).items() if c > 1)
+        if repeated:
+            raise URDFError(f"duplicated {kind} names: {', '.join(repeated)}")
+    if not links:
+        raise URDFError("the URDF has no links")
+    known = set(links)
+    parent_of = {}
+    for joint in robot.joints:
+        for end in (joint.parent, joint.child):
+            if end not in known:
+                raise URDFError(f"joint {joint.name!r} refers to unknown link {end!r}")
+        if joint.child in parent_of:
+            raise URDFError(
+                f"link {joint.child!r} is the child of two joints "
+                f"({parent_of[joint.child]!r} and {joint.name!r}): kinematic loops are not supported"
+            )
+        parent_of[joint.child] = joint.name
+        if joint.type not in _MOVING + ("fixed",):
+            raise URDFError(f"joint {joint.name!r} has unsupported type {joint.type!r}")
+        if joint.mimic is not None:
+            raise URDFError(f"joint {joint.name!r} is a mimic joint: mimic joints are not supported")
+    roots = [name for name in links if name not in parent_of]
+    if len(roots) != 1:
+        detail = ", ".join(roots) if roots else "none (every link has a parent: a loop)"
+        raise URDFError(f"a URDF must have exactly one root link; found {detail}")
+    for link in robot.links:
+        inertial = link.inertial
+        if inertial is None or inertial.mass is None:
+            continue
+        if not np.isfinite(inertial.mass) or inertial.mass < 0:
+            raise URDFError(f"link {link.name!r} has invalid mass {inertial.mass}")
+        inertia = np.asarray(inertial.inertia if inertial.inertia is not None else np.zeros((3, 3)))
+        if not np.all(np.isfinite(inertia)):
+            raise URDFError(f"link {link.name!r} has a non-finite inertia")
+        if check_inertia and inertial.mass > 0:
+            eig = np.linalg.eigvalsh(0.5 * (inertia + inertia.T))
+            if eig.min() < -1e-12 * max(1.0, eig.max()):
+                raise URDFError(
+                    f"link {link.name!r} has an inertia that is not positive semi-definite "
+                    f"(eigenvalues {eig}); pass check_inertia=False to load it anyway"
+                )
+    return roots[0]
+
+
+def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=True):
+    """Build a floating-base ``Model`` from a URDF.
+
+    source: path, XML string or ``yourdfpy.URDF``.
+    joints: names of the optimised joints, in the order they take in s; default: every moving
+        joint, in URDF order.
+    locked: {joint name: value} for joints not optimised; unspecified ones are locked at 0.
+    name: model name (default: the URDF robot name).
+    check_inertia: reject inertias that are not positive semi-definite. The public iRonCub
+        Mk1.1 URDF has such inertias on both elbows: load it with check_inertia=False.
+    """
+    urdf = read_urdf(source)
+    robot = urdf.robot
+    root = _validate_structure(robot, check_inertia)
+    locked = dict(locked or {})
+
+    children = collections.defaultdict(list)
+    for joint in robot.joints:
+        children[joint.parent].append(joint)
+    moving_names = [j.name for j in robot.joints if j.type in _MOVING]
+    joint_types = {j.name: j.type for j in robot.joints}
+
+    if joints is None:
+        joints = [j for j in moving_names if j not in locked]
+    joints = list(joints)
+    if len(set(joints)) != len(joints):
+        raise ValueError(f"joints are listed more than once: {sorted({j for j in joints if joints.count(j) > 1})}")
+    for j in joints:
+        if j in joint_types and joint_types[j] == "fixed":
+            raise ValueError(f"joint {j!r} is fixed and cannot be optimised")
+        _lookup(moving_names, j, "joint")
+    for j in locked:
+        _lookup(moving_names, j, "joint")
+        if j in joints:
+            raise ValueError(f"joint {j!r} is both optimised and locked")
+
+    # Breadth-first walk: bodies get indices in depth order, parents before children.
+    body_names, body_parent, body_depth = [root], [-1], [0]
+    joint_names, joint_prismatic, joint_T, joint_axis, joint_limits = [], [], [], [], []
+    frame_names, frame_body, frame_T = [root], [0], [np.eye(4)]
+    link_body = {root: (0, np.eye(4))}
+    queue = collections.deque([root])
+    while queue:
+        link = queue.popleft()
+        body, T_link = link_body[link]
+        for joint in children[link]:
+            T_joint = T_link @ _transform(joint.origin)
+            if joint.type == "fixed":
+                link_body[joint.child] = (body, T_joint)
+            else:
+                axis = np.asarray(joint.axis if joint.axis is not None else [1.0, 0.0, 0.0], float)
+                if not np.linalg.norm(axis) > 0:
+                    raise URDFError(f"joint {joint.name!r} has a zero axis")
+                new_body = len(body_names)
+                body_names.append(joint.child)
+                body_parent.append(body)
+                body_depth.append(body_depth[body] + 1)
+                joint_names.append(joint.name)
+                joint_prismatic.append(joint.type == "prismatic")
+                joint_T.append(T_joint)
+                joint_axis.append(axis / np.linalg.norm(axis))
+                limit = joint.limit
+                lower = -np.inf if joint.type == "continuous" or limit is None or limit.lower is None else limit.lower
+                upper = np.inf if joint.type == "continuous" or limit is None or limit.upper is None else limit.upper
+                velocity = np.inf if limit is None or limit.velocity is None else limit.velocity
+                joint_limits.append((lower, upper, velocity))
+                link_body[joint.child] = (new_body, np.eye(4))
+            frame_names.append(joint.child)
+            frame_body.append(link_body[joint.child][0])
+            frame_T.append(link_body[joint.child][1])
+            queue.append(joint.child)
+
+    inertial_names, inertial_body, masses, coms, inertias = [], [], [], [], []
+    for link in robot.links:
+        inertial = link.inertial
+        if inertial is None or inertial.mass is None or inertial.mass == 0:
+            continue
+        body, T_link = link_body[link.name]
+        T = T_link @ _transform(inertial.origin)
+        R = T[:3, :3]
+        inertia = np.asarray(inertial.inertia if inertial.inertia is not None else np.zeros((3, 3)), float)
+        inertial_names.append(link.name)
+        inertial_body.append(body)
+        masses.append(float(inertial.mass))
+        coms.append(T[:3, 3])
+        inertias.append(R @ (0.5 * (inertia + inertia.T)) @ R.T)
+
+    optimised = tuple(joint_names.index(j) for j in joints)
+    locked_idx = tuple(i for i, j in enumerate(joint_names) if i not in optimised)
+    levels = tuple(
+        tuple(b for b in range(1, len(body_names)) if body_depth[b] == d)
+        for d in range(1, max(body_depth) + 1)
+    )
+    topology = Topology(
+        name=name or robot.name or "robot",
+        body_names=tuple(body_names),
+        body_parent=tuple(body_parent),
+        body_levels=levels,
+        joint_names=tuple(joint_names),
+        joint_is_prismatic=tuple(joint_prismatic),
+        optimised_joints=optimised,
+        locked_joints=locked_idx,
+        frame_names=tuple(frame_names),
+        frame_body=tuple(frame_body),
+        inertial_body=tuple(inertial_body),
+        inertial_names=tuple(inertial_names),
+    )
+    limits = np.asarray(joint_limits, float).reshape(-1, 3)
+    array = lambda x, shape: jnp.asarray(np.asarray(x, float).reshape(shape))  # noqa: E731
+    nj = len(joint_names)
+    return Model(
+        joint_rotation=array([T[:3, :3] for T in joint_T], (nj, 3, 3)),
+        joint_translation=array([T[:3, 3] for T in joint_T], (nj, 3)),
+        joint_axis=array(joint_axis, (nj, 3)),
+        frame_rotation=array([T[:3, :3] for T in frame_T], (-1, 3, 3)),
+        frame_translation=array([T[:3, 3] for T in frame_T], (-1, 3)),
+        inertial_mass=array(masses, (-1,)),
+        inertial_com=array(coms, (-1, 3)),
+        inertial_inertia=array(inertias, (-1, 3, 3)),
+        position_limits=array(limits[list(optimised), :2], (-1, 2)),
+        velocity_limits=array(limits[list(optimised), 2], (-1,)),
+        locked_positions=array([locked.get(joint_names[i], 0.0) for i in locked_idx], (-1,)),
+        topology=topology,
+    )
