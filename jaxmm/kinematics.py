@@ -40,16 +40,14 @@ def body_poses(model, q):
     slide = jnp.where(prismatic, angles, 0.0)[:, None] * model.joint_axis
     local_p = model.joint_translation + jnp.einsum("jab,jb->ja", model.joint_rotation, slide)
 
-    nb = len(topology.body_names)
-    R = jnp.zeros((nb, 3, 3), dtype=q.dtype).at[0].set(so3.quaternion_to_rotation(q[3:7]))
-    p = jnp.zeros((nb, 3), dtype=q.dtype).at[0].set(q[:3])
+    # Bodies are numbered by depth: each level is a contiguous range, appended in turn.
+    R = so3.quaternion_to_rotation(q[3:7])[None]
+    p = q[None, :3]
     parent = np.asarray(topology.body_parent)
-    for level in topology.body_levels:
-        bodies = np.asarray(level)
-        joints = bodies - 1
-        R_parent, p_parent = R[parent[bodies]], p[parent[bodies]]
-        R = R.at[bodies].set(R_parent @ local_R[joints])
-        p = p.at[bodies].set(p_parent + jnp.einsum("bij,bj->bi", R_parent, local_p[joints]))
+    for start, stop in topology.body_levels:
+        R_parent, p_parent = R[parent[start:stop]], p[parent[start:stop]]
+        R = jnp.concatenate([R, R_parent @ local_R[start - 1 : stop - 1]])
+        p = jnp.concatenate([p, p_parent + jnp.einsum("bij,bj->bi", R_parent, local_p[start - 1 : stop - 1])])
     return R, p
 
 

@@ -39,7 +39,8 @@ class Topology:
 
     body_names: (nb,) name of the URDF link each body starts with.
     body_parent: (nb,) parent body index (−1 for the base).
-    body_levels: bodies grouped by depth in the tree, deepest last (for batched kinematics).
+    body_levels: (start, stop) index range of the bodies at each depth 1, 2, … (bodies are
+        numbered by depth, so each level is contiguous; used for batched kinematics).
     joint_names: (nb − 1,) name of the joint moving body i + 1.
     joint_is_prismatic: (nb − 1,) True for prismatic, False for revolute/continuous joints.
     optimised_joints: (n,) index into joint_names of each entry of s.

@@ -139,24 +139,31 @@ def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=T
         if j in joints:
             raise ValueError(f"joint {j!r} is both optimised and locked")
 
-    # Breadth-first walk: bodies get indices in depth order, parents before children.
+    # Breadth-first walk over bodies (each body's fixed-joint links first), so bodies are
+    # numbered by depth and each depth level is a contiguous range of indices.
     body_names, body_parent, body_depth = [root], [-1], [0]
     joint_names, joint_prismatic, joint_T, joint_axis, joint_limits = [], [], [], [], []
-    frame_names, frame_body, frame_T = [root], [0], [np.eye(4)]
-    link_body = {root: (0, np.eye(4))}
-    queue = collections.deque([root])
-    while queue:
-        link = queue.popleft()
-        body, T_link = link_body[link]
-        for joint in children[link]:
-            T_joint = T_link @ _transform(joint.origin)
-            if joint.type == "fixed":
-                link_body[joint.child] = (body, T_joint)
-            else:
+    frame_names, frame_body, frame_T = [], [], []
+    link_body = {}
+    bodies = collections.deque([0])
+    while bodies:
+        body = bodies.popleft()
+        links = [(body_names[body], np.eye(4))]
+        while links:
+            link, T_link = links.pop()
+            link_body[link] = (body, T_link)
+            frame_names.append(link)
+            frame_body.append(body)
+            frame_T.append(T_link)
+            for joint in children[link]:
+                T_joint = T_link @ _transform(joint.origin)
+                if joint.type == "fixed":
+                    links.append((joint.child, T_joint))
+                    continue
                 axis = np.asarray(joint.axis if joint.axis is not None else [1.0, 0.0, 0.0], float)
                 if not np.linalg.norm(axis) > 0:
                     raise URDFError(f"joint {joint.name!r} has a zero axis")
-                new_body = len(body_names)
+                bodies.append(len(body_names))
                 body_names.append(joint.child)
                 body_parent.append(body)
                 body_depth.append(body_depth[body] + 1)
@@ -169,11 +176,6 @@ def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=T
                 upper = np.inf if joint.type == "continuous" or limit is None or limit.upper is None else limit.upper
                 velocity = np.inf if limit is None or limit.velocity is None else limit.velocity
                 joint_limits.append((lower, upper, velocity))
-                link_body[joint.child] = (new_body, np.eye(4))
-            frame_names.append(joint.child)
-            frame_body.append(link_body[joint.child][0])
-            frame_T.append(link_body[joint.child][1])
-            queue.append(joint.child)
 
     inertial_names, inertial_body, masses, coms, inertias = [], [], [], [], []
     for link in robot.links:
@@ -193,7 +195,7 @@ def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=T
     optimised = tuple(joint_names.index(j) for j in joints)
     locked_idx = tuple(i for i, j in enumerate(joint_names) if i not in optimised)
     levels = tuple(
-        tuple(b for b in range(1, len(body_names)) if body_depth[b] == d)
+        (body_depth.index(d), len(body_depth) - body_depth[::-1].index(d))
         for d in range(1, max(body_depth) + 1)
     )
     topology = Topology(

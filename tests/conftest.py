@@ -1,0 +1,96 @@
+"""Shared fixtures: the robots under test and their Pinocchio twins.
+
+Pinocchio is the independent reference. Its free-flyer velocity is expressed in the base
+frame (v_local = Rᵀṗ, ω_local = Rᵀω); ``PinocchioTwin.velocity`` converts our mixed ν to it
+rather than loosening any tolerance.
+"""
+
+import pathlib
+
+import numpy as np
+import pytest
+
+import jaxmm
+from jaxmm import so3
+
+SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared"
+IRONCUB_URDF = SHARED / "robots" / "ironcub-mk1_1" / "model.urdf"
+
+
+class PinocchioTwin:
+    """A Pinocchio model of the same URDF with the same locked joints, and q/ν converters."""
+
+    def __init__(self, model, urdf_xml):
+        import pinocchio as pin
+
+        self.pin = pin
+        full = pin.buildModelFromXML(urdf_xml, pin.JointModelFreeFlyer())
+        locked = [full.getJointId(name) for name in model.locked_joint_names]
+        reference = pin.neutral(full)
+        for name, value in zip(model.locked_joint_names, np.asarray(model.locked_positions)):
+            reference[full.joints[full.getJointId(name)].idx_q] = value
+        self.model = pin.buildReducedModel(full, locked, reference) if locked else full
+        self.data = self.model.createData()
+        self.q_index = [self.model.joints[self.model.getJointId(n)].idx_q for n in model.joint_names]
+        self.v_index = [self.model.joints[self.model.getJointId(n)].idx_v for n in model.joint_names]
+
+    def configuration(self, q):
+        q = np.asarray(q)
+        q_pin = np.zeros(self.model.nq)
+        q_pin[:7] = q[:7]  # Pinocchio's free flyer is also (p, quaternion x y z w)
+        q_pin[self.q_index] = q[7:]
+        return q_pin
+
+    def velocity(self, q, nu):
+        nu = np.asarray(nu)
+        R = np.asarray(so3.quaternion_to_rotation(np.asarray(q)[3:7]))
+        v_pin = np.zeros(self.model.nv)
+        v_pin[:3] = R.T @ nu[:3]
+        v_pin[3:6] = R.T @ nu[3:6]
+        v_pin[self.v_index] = nu[6:]
+        return v_pin
+
+    def frame_id(self, name):
+        return self.model.getFrameId(name, self.pin.BODY)
+
+
+def random_configurations(model, count, seed):
+    """Random q: base anywhere within 2 m, random unit quaternion, joints within limits
+    (within ±π for unlimited joints). Returns (count, 7 + n)."""
+    rng = np.random.default_rng(seed)
+    lower = np.maximum(np.asarray(model.position_limits[:, 0]), -np.pi)
+    upper = np.minimum(np.asarray(model.position_limits[:, 1]), np.pi)
+    quaternions = rng.normal(size=(count, 4))
+    quaternions /= np.linalg.norm(quaternions, axis=1, keepdims=True)
+    return np.concatenate(
+        [rng.uniform(-2, 2, (count, 3)), quaternions, rng.uniform(lower, upper, (count, model.n_joints))],
+        axis=1,
+    )
+
+
+def _ironcub_real():
+    if not IRONCUB_URDF.is_file():
+        pytest.skip(f"the shared iRonCub URDF is absent ({IRONCUB_URDF}); real-robot checks skipped")
+    default = jaxmm.load_ironcub()
+    model = jaxmm.model_from_urdf(
+        IRONCUB_URDF, joints=default.model.joint_names, check_inertia=False
+    )  # the public URDF has non-physical elbow inertias; Pinocchio loads them too
+    return model, IRONCUB_URDF.read_text()
+
+
+def _ironcub_assembled():
+    description = jaxmm.robots.ironcub_description()
+    urdf = jaxmm.assemble_urdf(description)
+    return jaxmm.load_ironcub().model, urdf.write_xml_string()
+
+
+@pytest.fixture(scope="session", params=["ironcub-mk1_1 (shared URDF)", "ironcub (assembled default)"])
+def robot_pair(request):
+    """(jaxmm Model, PinocchioTwin) for the real iRonCub URDF and the assembled default robot."""
+    model, xml = _ironcub_real() if request.param.startswith("ironcub-mk1_1") else _ironcub_assembled()
+    return model, PinocchioTwin(model, xml)
+
+
+@pytest.fixture(scope="session")
+def ironcub():
+    return jaxmm.load_ironcub()

@@ -1,0 +1,136 @@
+"""Identities, autodiff checks and vmap equivalence of kinematics, CoM and the CMM."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import jaxmm
+from conftest import random_configurations
+
+FRAMES = ("l_sole_1", "l_sole_2", "l_sole_3", "l_sole_4", "r_sole_1", "r_sole_2", "r_sole_3", "r_sole_4",
+          "l_arm_jet_turbine", "r_arm_jet_turbine", "chest_l_jet_turbine", "chest_r_jet_turbine")
+
+
+@pytest.fixture(scope="module")
+def model(ironcub):
+    return ironcub.model
+
+
+@pytest.fixture(scope="module")
+def configurations(model):
+    return random_configurations(model, 8, seed=3)
+
+
+def test_total_mass_is_sum_of_link_masses(ironcub):
+    description = jaxmm.robots.ironcub_description()
+    urdf = jaxmm.assemble_urdf(description)
+    masses = [link.inertial.mass for link in urdf.robot.links if link.inertial is not None]
+    assert np.isclose(float(jaxmm.total_mass(ironcub.model)), sum(masses), rtol=0, atol=1e-12)
+
+
+def test_linear_rows_of_cmm_are_mass_times_com_jacobian(model, configurations):
+    """m·ẋ from the CMM equals m·d/dt com(q(t)), the latter by forward-mode autodiff of x(q)."""
+    rng = np.random.default_rng(4)
+    m = jaxmm.total_mass(model)
+    com = functools.partial(jaxmm.com_position, model)
+    com_velocity = jax.jit(lambda q, q_dot: jax.jvp(com, (q,), (q_dot,))[1])
+    cmm = jax.jit(functools.partial(jaxmm.centroidal_momentum_matrix, model))
+    for q in configurations:
+        nu = rng.normal(size=model.nv)
+        q_dot = jaxmm.configuration_derivative(q, nu)
+        x_dot = com_velocity(q, q_dot)
+        A = cmm(q)
+        assert np.allclose(A[:3] @ nu, m * x_dot, atol=1e-12, rtol=0)
+        assert np.allclose(A[:3], m * jaxmm.com_jacobian(model, q), atol=1e-12)
+
+
+def test_frame_jacobian_is_derivative_of_frame_position(model, configurations):
+    rng = np.random.default_rng(5)
+    for q in configurations[:3]:
+        nu = rng.normal(size=model.nv)
+        for frame in ("l_sole_1", "chest_l_jet_turbine"):
+            position = lambda q: jaxmm.frame_pose(model, q, frame)[0]  # noqa: E731
+            rotation = lambda q: jaxmm.frame_pose(model, q, frame)[1]  # noqa: E731
+            q_dot = jaxmm.configuration_derivative(q, nu)
+            _, v = jax.jvp(position, (q,), (q_dot,))
+            R, R_dot = jax.jvp(rotation, (q,), (q_dot,))
+            omega_hat = R_dot @ R.T  # Ṙ = S(ω) R
+            omega = jnp.array([omega_hat[2, 1], omega_hat[0, 2], omega_hat[1, 0]])
+            J = jaxmm.frame_jacobian(model, q, frame)
+            assert np.allclose(J @ nu, jnp.concatenate([v, omega]), atol=1e-12)
+
+
+def test_cmm_of_rigid_motion(model, configurations):
+    """A pure base translation gives h = (m ṗ, 0); joint velocities alone leave m ẋ = J_com ṡ."""
+    q = configurations[0]
+    p_dot = np.array([0.3, -1.0, 2.0])
+    nu = np.concatenate([p_dot, np.zeros(model.nv - 3)])
+    h = jaxmm.centroidal_momentum(model, q, nu)
+    assert np.allclose(h, np.concatenate([jaxmm.total_mass(model) * p_dot, np.zeros(3)]), atol=1e-12)
+
+
+def test_vmap_matches_single_calls(model, configurations):
+    Q = jnp.asarray(configurations)
+    nu = jnp.asarray(np.random.default_rng(6).normal(size=(len(Q), model.nv)))
+    functions = {
+        "com": lambda q, v: jaxmm.com_position(model, q),
+        "cmm": lambda q, v: jaxmm.centroidal_momentum_matrix(model, q),
+        "frames": lambda q, v: jaxmm.frame_poses(model, q, FRAMES),
+        "jacobian": lambda q, v: jaxmm.frame_jacobian(model, q, "r_sole_2"),
+        "integrate": lambda q, v: jaxmm.integrate_configuration(q, v, 0.05),
+    }
+    for name, f in functions.items():
+        f = jax.jit(f)
+        batched = jax.vmap(f)(Q, nu)
+        for i in range(len(Q)):
+            single = f(Q[i], nu[i])
+            for b, s in zip(jax.tree.leaves(batched), jax.tree.leaves(single)):
+                assert np.allclose(b[i], s, atol=1e-13, rtol=1e-13), name
+
+
+def test_gradients_of_kinematics_and_cmm(model, configurations):
+    q = jnp.asarray(configurations[1])
+    check_grads(jax.jit(lambda q: jaxmm.frame_poses(model, q, FRAMES)), (q,), order=1, modes=["fwd", "rev"])
+    check_grads(jax.jit(lambda q: jaxmm.com_position(model, q)), (q,), order=2, modes=["fwd", "rev"])
+    nu = jnp.asarray(np.random.default_rng(1).normal(size=model.nv))
+    check_grads(jax.jit(lambda q: jaxmm.centroidal_momentum(model, q, nu)), (q,), order=1, modes=["fwd", "rev"])
+
+
+def test_gradients_with_respect_to_model_parameters(model, configurations):
+    """Masses and placements are array leaves: the CoM is differentiable in them."""
+    q = jnp.asarray(configurations[2])
+
+    def com_of(masses, translations):
+        changed = jax.tree_util.tree_map(lambda x: x, model)
+        changed = type(model)(**{**changed.__dict__, "inertial_mass": masses, "joint_translation": translations})
+        return jaxmm.com_position(changed, q)
+
+    check_grads(com_of, (model.inertial_mass, model.joint_translation), order=1, modes=["fwd", "rev"])
+
+
+def test_quaternion_integrator_gradient_at_zero_velocity(model, configurations):
+    q = jnp.asarray(configurations[0])
+    for nu in (jnp.zeros(model.nv), jnp.asarray(np.random.default_rng(2).normal(size=model.nv))):
+        step = jax.jit(lambda nu: jaxmm.integrate_configuration(q, nu, 0.05))
+        check_grads(step, (nu,), order=2, modes=["fwd", "rev"])
+        grad = jax.jacrev(lambda nu: jaxmm.integrate_configuration(q, nu, 0.05))(nu)
+        assert np.all(np.isfinite(grad))
+        assert abs(np.linalg.norm(jaxmm.integrate_configuration(q, nu, 0.05)[3:7]) - 1) < 1e-14
+
+
+def test_standing_pose_has_feet_on_the_ground(ironcub):
+    positions, _ = jaxmm.frame_poses(ironcub.model, ironcub.standing_configuration, ironcub.contact_frames)
+    assert np.abs(np.asarray(positions)[:, 2]).max() < 0.01
+    assert np.all(np.isfinite(np.asarray(positions)))
+
+
+def test_jit_with_static_model_fields(model, configurations):
+    """The model is a pytree: passing it as a jit argument traces only its arrays."""
+    compiled = jax.jit(jaxmm.centroidal_momentum_matrix)
+    A = compiled(model, configurations[0])
+    assert A.shape == (6, model.nv) and A.dtype == jnp.float64
+    assert np.allclose(A, jaxmm.centroidal_momentum_matrix(model, configurations[0]))
