@@ -88,8 +88,12 @@ def _lookup(names, name, what):
     try:
         return names.index(name)
     except ValueError:
-        close = difflib.get_close_matches(name, names, n=3)
-        hint = f"; did you mean {', '.join(map(repr, close))}?" if close else ""
+        close = difflib.get_close_matches(name, names, n=3, cutoff=0.5)
+        if close:
+            hint = f"; did you mean {', '.join(map(repr, close))}?"
+        else:
+            shown = ", ".join(map(repr, names[:10])) + (", …" if len(names) > 10 else "")
+            hint = f"; the model has {len(names)}: {shown}"
         raise UnknownNameError(f"unknown {what} {name!r}{hint}") from None
 
 

@@ -5,6 +5,7 @@ frame (v_local = Rᵀṗ, ω_local = Rᵀω); ``PinocchioTwin.velocity`` convert
 rather than loosening any tolerance.
 """
 
+import os
 import pathlib
 
 import numpy as np
@@ -13,7 +14,7 @@ import pytest
 import jaxmm
 from jaxmm import so3
 
-SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared"
+SHARED = pathlib.Path(os.environ.get("JAXMM_SHARED", pathlib.Path(__file__).resolve().parents[2] / "shared"))
 IRONCUB_URDF = SHARED / "robots" / "ironcub-mk1_1" / "model.urdf"
 
 
@@ -32,13 +33,19 @@ class PinocchioTwin:
         self.model = pin.buildReducedModel(full, locked, reference) if locked else full
         self.data = self.model.createData()
         self.q_index = [self.model.joints[self.model.getJointId(n)].idx_q for n in model.joint_names]
+        # Continuous joints are (cos, sin) pairs in Pinocchio.
+        self.unbounded = [self.model.joints[self.model.getJointId(n)].nq == 2 for n in model.joint_names]
         self.v_index = [self.model.joints[self.model.getJointId(n)].idx_v for n in model.joint_names]
 
     def configuration(self, q):
         q = np.asarray(q)
         q_pin = np.zeros(self.model.nq)
         q_pin[:7] = q[:7]  # Pinocchio's free flyer is also (p, quaternion x y z w)
-        q_pin[self.q_index] = q[7:]
+        for index, unbounded, angle in zip(self.q_index, self.unbounded, q[7:]):
+            if unbounded:
+                q_pin[index : index + 2] = np.cos(angle), np.sin(angle)
+            else:
+                q_pin[index] = angle
         return q_pin
 
     def velocity(self, q, nu):
