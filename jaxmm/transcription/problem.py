@@ -1,0 +1,143 @@
+"""The multimodal trajectory-optimisation problem (eq. 33): weights, parameters and the task.
+
+A ``Task`` is a pytree: its numbers (targets, bounds, weights, jet coefficients, the robot
+model) are array leaves that can be differentiated and vmapped; its structure (knot count,
+options, frame names) is static.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmm.robots import Robot
+from jaxmm.transcription.variables import Layout
+
+INTEGRATION_RULES = ("trapezoidal", "backward_euler")
+SLACK_PENALTIES = ("linear", "squared")
+
+
+def _weight():
+    return dataclasses.field(default=0.0)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Weights:
+    """Cost weights of eq. (32) (docs/formulation.md, "Cost"); every weight defaults to 0.
+
+    Running terms (× Δt, knots 0..N−1), final terms (knot N), initial terms (knot 0), the
+    complementarity slacks (every knot) and the total time.
+    """
+
+    com_acc: float = _weight()
+    com_vel: float = _weight()
+    com_vel_xy: float = _weight()
+    ang_mom_rate: float = _weight()
+    ang_mom: float = _weight()
+    joint_vel_upper: float = _weight()
+    joint_vel_lower: float = _weight()
+    posture: float = _weight()
+    force: float = _weight()
+    force_rate: float = _weight()
+    thrust: float = _weight()
+    throttle: float = _weight()
+    base_orientation: float = _weight()
+    final_momentum: float = _weight()
+    final_thrust: float = _weight()
+    final_posture: float = _weight()
+    final_force: float = _weight()
+    initial_posture: float = _weight()
+    initial_base_orientation: float = _weight()
+    initial_force: float = _weight()
+    complementarity_slack: float = _weight()
+    horizon: float = 1.0
+
+    @classmethod
+    def from_dict(cls, weights):
+        """Weights from {name: value}; unknown names and non-scalar values raise ValueError."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(weights) - names)
+        if unknown:
+            raise ValueError(f"unknown cost weights {unknown}; known weights: {sorted(names)}")
+        checked = {}
+        for name, value in weights.items():
+            array = jnp.asarray(value, dtype=float)
+            if array.shape != ():
+                raise ValueError(f"weight {name!r} must be a scalar, got shape {array.shape}")
+            if not (np.isfinite(float(array)) and float(array) >= 0):
+                raise ValueError(f"weight {name!r} must be finite and non-negative, got {float(array)}")
+            checked[name] = array
+        return cls(**checked)
+
+    def to_dict(self):
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TaskParams:
+    """The numbers of a task (physical units). nj jets, n optimised joints.
+
+    initial_com, final_com: (3,) x_0, x_N [m]; mid_com_height: () h_min at knot N/2 [m]
+    (−inf: none); reference_configuration: (7 + n,) standing pose (posture s̄, initial ρ̄);
+    friction_coefficient μ; corner_com_bound: (3,) [m]; jet_com_bound: () [m];
+    max_thrust: (nj,) [N]; throttle_range: (2,) [%]; jet_coefficients: (nj, 10) (eq. 8);
+    joint_limits: (n, 2) [rad]; joint_velocity_limit [rad/s]; base_linear_velocity_limit [m/s];
+    base_angular_velocity_limit [rad/s]; com_xy_limit [m]; boundary_tolerance: initial
+    equilibrium/orientation tolerance; final_orientation_tolerance; min_dt, max_dt [s];
+    gravity: (3,) [m/s²].
+    """
+
+    initial_com: jax.Array
+    final_com: jax.Array
+    mid_com_height: jax.Array
+    reference_configuration: jax.Array
+    friction_coefficient: jax.Array
+    corner_com_bound: jax.Array
+    jet_com_bound: jax.Array
+    max_thrust: jax.Array
+    throttle_range: jax.Array
+    jet_coefficients: jax.Array
+    joint_limits: jax.Array
+    joint_velocity_limit: jax.Array
+    base_linear_velocity_limit: jax.Array
+    base_angular_velocity_limit: jax.Array
+    com_xy_limit: jax.Array
+    boundary_tolerance: jax.Array
+    final_orientation_tolerance: jax.Array
+    min_dt: jax.Array
+    max_dt: jax.Array
+    gravity: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Task:
+    """A complete problem instance: robot, parameters, weights and static options.
+
+    n_intervals: N (the trajectory has N + 1 knots); zero_initial_thrust: T[0], Ṫ[0] ≈ 0;
+    integration: "trapezoidal" (published runs) or "backward_euler" (the paper's text);
+    slack_penalty: "linear" (published) or "squared" (the text); upper_body_joints: indices
+    in s of the joints weighted by ``joint_vel_upper``.
+    """
+
+    robot: Robot
+    params: TaskParams
+    weights: Weights
+    name: str = dataclasses.field(metadata=dict(static=True))
+    n_intervals: int = dataclasses.field(metadata=dict(static=True))
+    zero_initial_thrust: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    integration: str = dataclasses.field(default="trapezoidal", metadata=dict(static=True))
+    slack_penalty: str = dataclasses.field(default="linear", metadata=dict(static=True))
+    upper_body_joints: tuple = dataclasses.field(default=(), metadata=dict(static=True))
+
+    @property
+    def layout(self):
+        return Layout(self.robot.model.n_joints, len(self.robot.contact_frames), len(self.robot.jet_frames))
+
+    @property
+    def n_knots(self):
+        """N + 1."""
+        return self.n_intervals + 1

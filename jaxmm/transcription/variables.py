@@ -1,0 +1,149 @@
+"""Decision variables: one knot as a named pytree, the trajectory, flat layout and scaling.
+
+The order of the fields is the flat layout of a knot (docs/formulation.md, "Variables").
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Knot:
+    """The decision variables of one knot (physical units; shapes for one knot).
+
+    n joints, nc contact corners, nj jets. With a leading axis (N + 1,) on every leaf the same
+    class holds a whole trajectory's knots.
+    """
+
+    com: jax.Array  # (3,) x [m], world
+    com_velocity: jax.Array  # (3,) ẋ [m/s]
+    com_acceleration: jax.Array  # (3,) ẍ [m/s²]
+    angular_momentum: jax.Array  # (3,) h_ω [kg m²/s], about the CoM
+    angular_momentum_rate: jax.Array  # (3,) ḣ_ω [N m]
+    base_position: jax.Array  # (3,) p [m]
+    base_quaternion: jax.Array  # (4,) ρ (x, y, z, w)
+    joint_positions: jax.Array  # (n,) s [rad]
+    base_linear_velocity: jax.Array  # (3,) ṗ [m/s], world
+    base_angular_velocity: jax.Array  # (3,) ω [rad/s], world
+    joint_velocities: jax.Array  # (n,) ṡ [rad/s]
+    contact_forces: jax.Array  # (nc, 3) f [N], world
+    contact_force_rates: jax.Array  # (nc, 3) ḟ [N/s]
+    contact_points: jax.Array  # (nc, 3) c [m], world
+    thrust: jax.Array  # (nj,) T [N]
+    thrust_rate: jax.Array  # (nj,) Ṫ [N/s]
+    thrust_acceleration: jax.Array  # (nj,) T̈ [N/s²]
+    throttle: jax.Array  # (nj,) u [%]
+    normal_slack: jax.Array  # (nc,) ε_n
+    tangential_slack: jax.Array  # (nc,) ε_t
+
+    @property
+    def configuration(self):
+        """q = (p, ρ, s): (7 + n,) (or (N + 1, 7 + n) for a trajectory)."""
+        return jnp.concatenate([self.base_position, self.base_quaternion, self.joint_positions], axis=-1)
+
+    @property
+    def velocity(self):
+        """ν = (ṗ, ω, ṡ): (6 + n,) (or (N + 1, 6 + n))."""
+        return jnp.concatenate(
+            [self.base_linear_velocity, self.base_angular_velocity, self.joint_velocities], axis=-1
+        )
+
+
+FIELDS = tuple(f.name for f in dataclasses.fields(Knot))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Trajectory:
+    """A whole trajectory: knots (every leaf with a leading (N + 1,) axis) and the total time [s]."""
+
+    knots: Knot
+    total_time: jax.Array  # () T_total [s]
+
+    @property
+    def n_knots(self):
+        """N + 1."""
+        return self.knots.com.shape[0]
+
+    @property
+    def time(self):
+        """(N + 1,) time of each knot [s]."""
+        return jnp.linspace(0.0, 1.0, self.n_knots) * self.total_time
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Static sizes of a knot and the map between ``Knot`` and flat vectors.
+
+    n_joints n, n_contacts nc, n_jets nj (all Python ints, hashable).
+    """
+
+    n_joints: int
+    n_contacts: int
+    n_jets: int
+
+    def shapes(self):
+        n, nc, nj = self.n_joints, self.n_contacts, self.n_jets
+        sizes = dict(
+            com=(3,), com_velocity=(3,), com_acceleration=(3,), angular_momentum=(3,),
+            angular_momentum_rate=(3,), base_position=(3,), base_quaternion=(4,),
+            joint_positions=(n,), base_linear_velocity=(3,), base_angular_velocity=(3,),
+            joint_velocities=(n,), contact_forces=(nc, 3), contact_force_rates=(nc, 3),
+            contact_points=(nc, 3), thrust=(nj,), thrust_rate=(nj,), thrust_acceleration=(nj,),
+            throttle=(nj,), normal_slack=(nc,), tangential_slack=(nc,),
+        )
+        return {name: sizes[name] for name in FIELDS}
+
+    @property
+    def size(self):
+        """nz, the number of variables of one knot."""
+        return sum(int(np.prod(s)) for s in self.shapes().values())
+
+    def slices(self):
+        """{field: slice of the flat knot vector}."""
+        out, start = {}, 0
+        for name, shape in self.shapes().items():
+            size = int(np.prod(shape))
+            out[name] = slice(start, start + size)
+            start += size
+        return out
+
+    def flatten(self, knot):
+        """Knot → (nz,) (or (..., nz) for batched knots)."""
+        shapes = self.shapes()
+        leaves = []
+        for name in FIELDS:
+            leaf = jnp.asarray(getattr(knot, name))
+            batch = leaf.shape[: leaf.ndim - len(shapes[name])]
+            leaves.append(leaf.reshape(batch + (-1,)))
+        return jnp.concatenate(leaves, axis=-1)
+
+    def unflatten(self, z):
+        """(nz,) (or (..., nz)) → Knot."""
+        if z.shape[-1] != self.size:
+            raise ValueError(f"a flat knot has {self.size} entries, got shape {z.shape}")
+        batch = z.shape[:-1]
+        return Knot(**{
+            name: z[..., sl].reshape(batch + shape)
+            for (name, shape), sl in zip(self.shapes().items(), self.slices().values())
+        })
+
+    def full(self, value):
+        """A Knot with every entry equal to value (useful for bounds)."""
+        return self.unflatten(jnp.full(self.size, value, dtype=float))
+
+    def scale(self):
+        """(nz,) variable scaling d of the published runs: z = d · z̃ (T 100; f, ḟ 50; s 2; ṡ 7)."""
+        knot = self.full(1.0)
+        return self.flatten(dataclasses.replace(
+            knot,
+            thrust=knot.thrust * 100.0,
+            contact_forces=knot.contact_forces * 50.0,
+            contact_force_rates=knot.contact_force_rates * 50.0,
+            joint_positions=knot.joint_positions * 2.0,
+            joint_velocities=knot.joint_velocities * 7.0,
+        ))
