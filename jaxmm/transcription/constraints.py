@@ -1,0 +1,196 @@
+"""The constraints of eq. (33), written once per knot (path) or per interval (transition)
+and vmapped over the horizon. Families and row orders follow docs/formulation.md."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmm import so3
+from jaxmm.centroidal import centroidal_momentum_matrix, com_position, total_mass
+from jaxmm.kinematics import frame_poses
+from jaxmm.physics.centroidal_dynamics import momentum_rate
+from jaxmm.physics.contacts import friction_cone, normal_complementarity, planar_complementarity
+from jaxmm.physics.jets import thrust_acceleration, thrust_forces
+from jaxmm.transcription.variables import Trajectory
+
+PATH_EQUALITIES = ("centroidal_dynamics", "com", "angular_momentum", "contact_points", "jet_dynamics")
+TRANSITION_EQUALITIES = (
+    "com_integration", "com_velocity_integration", "angular_momentum_integration",
+    "base_position_integration", "base_quaternion_integration", "joint_integration",
+    "force_integration", "thrust_integration", "thrust_rate_integration",
+)
+PATH_INEQUALITIES = ("friction_cone", "normal_complementarity", "corner_com", "jet_com")
+TRANSITION_INEQUALITIES = ("planar_complementarity",)
+
+
+def _kinematics(task, knot):
+    """Frame poses of contacts and jets, CoM and CMM at the knot's configuration."""
+    robot = task.robot
+    model = robot.model
+    q = knot.configuration
+    frames = robot.contact_frames + robot.jet_frames
+    positions, rotations = frame_poses(model, q, frames)
+    nc = len(robot.contact_frames)
+    return dict(
+        corner_positions=positions[:nc],
+        jet_positions=positions[nc:],
+        jet_rotations=rotations[nc:],
+        com=com_position(model, q),
+        cmm=centroidal_momentum_matrix(model, q),
+    )
+
+
+def path_equalities(task, knot, total_time):
+    """Equalities at one knot (eq. 8, 14-17, 23): {family: (rows,)}, zero when satisfied."""
+    del total_time
+    params = task.params
+    kin = _kinematics(task, knot)
+    mass = total_mass(task.robot.model)
+    jet_forces = thrust_forces(knot.thrust, kin["jet_rotations"])
+    rate = momentum_rate(
+        mass, knot.com, knot.contact_forces, knot.contact_points, jet_forces, kin["jet_positions"], params.gravity
+    )
+    return dict(
+        centroidal_dynamics=jnp.concatenate([mass * knot.com_acceleration, knot.angular_momentum_rate]) - rate,
+        com=knot.com - kin["com"],
+        angular_momentum=knot.angular_momentum - kin["cmm"][3:] @ knot.velocity,
+        contact_points=(knot.contact_points - kin["corner_positions"]).reshape(-1),
+        jet_dynamics=knot.thrust_acceleration
+        - thrust_acceleration(knot.thrust, knot.thrust_rate, knot.throttle, params.jet_coefficients),
+    )
+
+
+def transition_equalities(task, knot, next_knot, total_time):
+    """Integration from knot k to k+1 (eq. 24-27): {family: (rows,)}, zero when satisfied."""
+    dt = total_time / task.n_intervals
+    now, nxt = knot, next_knot
+    trapezoidal = task.integration == "trapezoidal"
+
+    def euler(value, derivative):
+        return getattr(nxt, value) - getattr(now, value) - dt * getattr(nxt, derivative)
+
+    def rule(value, derivative):
+        if trapezoidal:
+            mean = 0.5 * (getattr(now, derivative) + getattr(nxt, derivative))
+            return getattr(nxt, value) - getattr(now, value) - dt * mean
+        return euler(value, derivative)
+
+    return dict(
+        com_integration=rule("com", "com_velocity"),
+        com_velocity_integration=euler("com_velocity", "com_acceleration"),
+        angular_momentum_integration=euler("angular_momentum", "angular_momentum_rate"),
+        base_position_integration=euler("base_position", "base_linear_velocity"),
+        base_quaternion_integration=nxt.base_quaternion
+        - so3.quaternion_integrate(now.base_quaternion, nxt.base_angular_velocity, dt),
+        joint_integration=euler("joint_positions", "joint_velocities"),
+        force_integration=(nxt.contact_forces - now.contact_forces - dt * nxt.contact_force_rates).reshape(-1),
+        thrust_integration=euler("thrust", "thrust_rate"),
+        thrust_rate_integration=rule("thrust_rate", "thrust_acceleration"),
+    )
+
+
+def path_inequalities(task, knot, total_time):
+    """Inequalities at one knot (eq. 12, 19, 20, boxes of eq. 29): {family: (rows,)}."""
+    del total_time
+    kin = _kinematics(task, knot)
+    return dict(
+        friction_cone=friction_cone(knot.contact_forces, task.params.friction_coefficient),
+        normal_complementarity=normal_complementarity(knot.contact_forces, knot.contact_points, knot.normal_slack),
+        corner_com=(knot.contact_points - knot.com).reshape(-1),
+        jet_com=(kin["jet_positions"] - knot.com).reshape(-1),
+    )
+
+
+def transition_inequalities(task, knot, next_knot, total_time):
+    """Planar complementarity between knots k and k+1 (eq. 21): {family: (4 nc,)}."""
+    del total_time
+    upper, lower = planar_complementarity(
+        knot.contact_forces, knot.contact_points, next_knot.contact_points, knot.tangential_slack
+    )
+    return dict(planar_complementarity=jnp.concatenate([upper, lower]))
+
+
+def inequality_bounds(task):
+    """{family: (lower (rows,), upper (rows,))} of every inequality family (same at every knot)."""
+    nc, nj = len(task.robot.contact_frames), len(task.robot.jet_frames)
+    corner = jnp.tile(task.params.corner_com_bound, nc)
+    jet = jnp.full(3 * nj, 1.0) * task.params.jet_com_bound
+    inf = jnp.inf
+    return dict(
+        friction_cone=(jnp.full(4 * nc, -inf), jnp.zeros(4 * nc)),
+        normal_complementarity=(jnp.full(nc, -inf), jnp.zeros(nc)),
+        corner_com=(-corner, corner),
+        jet_com=(-jet, jet),
+        planar_complementarity=(
+            jnp.concatenate([jnp.full(2 * nc, -inf), jnp.zeros(2 * nc)]),
+            jnp.concatenate([jnp.zeros(2 * nc), jnp.full(2 * nc, inf)]),
+        ),
+    )
+
+
+def evaluate(task, trajectory):
+    """Every constraint family over the horizon: path families (N + 1, rows), transition
+    families (N, rows)."""
+    knots, total_time = trajectory.knots, trajectory.total_time
+    now = jax.tree.map(lambda x: x[:-1], knots)
+    nxt = jax.tree.map(lambda x: x[1:], knots)
+    out = {}
+    for function in (path_equalities, path_inequalities):
+        out.update(jax.vmap(function, in_axes=(None, 0, None))(task, knots, total_time))
+    for function in (transition_equalities, transition_inequalities):
+        out.update(jax.vmap(function, in_axes=(None, 0, 0, None))(task, now, nxt, total_time))
+    return out
+
+
+def variable_bounds(task):
+    """Boxes on the variables, knot by knot (docs/formulation.md, "Variable boxes").
+
+    Returns (lower, upper) as ``Trajectory``s of the task's shape, physical units; the
+    knot-dependent entries impose the boundary conditions of eq. (30, 31) and the
+    mid-horizon height. Traceable: the bounds are differentiable in the task's numbers.
+    """
+    p = task.params
+    layout = task.layout
+    slices = layout.slices()
+    bounds = [jnp.full((task.n_knots, layout.size), -jnp.inf), jnp.full((task.n_knots, layout.size), jnp.inf)]
+
+    def box(field, lower, upper, knots=slice(None), entries=slice(None)):
+        columns = np.arange(slices[field].start, slices[field].stop)[entries]
+        for side, value in ((0, lower), (1, upper)):
+            if value is not None:
+                bounds[side] = bounds[side].at[knots, columns].set(value)
+
+    tol = p.boundary_tolerance
+    xy = p.com_xy_limit
+    box("com", jnp.stack([-xy, -xy, 0.0]), jnp.stack([xy, xy, jnp.inf]))
+    box("com", p.initial_com, p.initial_com, knots=0)
+    box("com", p.final_com, p.final_com, knots=-1)
+    box("com", p.mid_com_height, None, knots=task.n_intervals // 2, entries=slice(2, 3))
+    for field in ("com_velocity", "com_acceleration", "angular_momentum", "angular_momentum_rate"):
+        box(field, -tol, tol, knots=0)
+    box("base_quaternion", -1.0, 1.0)
+    reference = p.reference_configuration[3:7]
+    box("base_quaternion", jnp.maximum(reference - tol, -1), jnp.minimum(reference + tol, 1), knots=0)
+    identity = jnp.array([0.0, 0.0, 0.0, 1.0])
+    final_tol = p.final_orientation_tolerance
+    box("base_quaternion", jnp.maximum(identity - final_tol, -1), jnp.minimum(identity + final_tol, 1), knots=-1)
+    box("joint_positions", p.joint_limits[:, 0], p.joint_limits[:, 1])
+    box("base_linear_velocity", -p.base_linear_velocity_limit, p.base_linear_velocity_limit)
+    box("base_angular_velocity", -p.base_angular_velocity_limit, p.base_angular_velocity_limit)
+    box("joint_velocities", -p.joint_velocity_limit, p.joint_velocity_limit)
+    vertical = slice(2, None, 3)
+    box("contact_forces", 0.0, None, entries=vertical)
+    box("contact_points", 0.0, None, entries=vertical)
+    box("contact_points", 0.0, 0.0, knots=0, entries=vertical)
+    box("thrust", 0.0, p.max_thrust)
+    if task.zero_initial_thrust:
+        box("thrust", 0.0, tol, knots=0)
+        box("thrust_rate", -tol, tol, knots=0)
+    box("throttle", p.throttle_range[0], p.throttle_range[1])
+    box("normal_slack", 0.0, None)
+    box("tangential_slack", 0.0, None)
+    N = task.n_intervals
+    return (
+        Trajectory(layout.unflatten(bounds[0]), N * p.min_dt),
+        Trajectory(layout.unflatten(bounds[1]), N * p.max_dt),
+    )
