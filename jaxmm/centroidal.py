@@ -35,6 +35,9 @@ def centroidal_momentum_matrix(model, q):
     h = J_CMM(q) ν is the momentum [linear (kg m/s); angular (kg m²/s)] of the robot about its
     CoM, in a frame with the world's orientation (the paper's frame G), for the mixed velocity
     ν = (ṗ, ω, ṡ). The linear rows equal m·J_com.
+
+    Each column is computed from the composite mass, first moment and inertia (about the CoM)
+    of the subtree the joint moves, so the cost is linear in the number of links.
     """
     R_body, p_body = body_poses(model, q)
     com, inertia = _inertials_world(model, R_body, p_body)
@@ -42,28 +45,32 @@ def centroidal_momentum_matrix(model, q):
     m = jnp.sum(mass)
     x = mass @ com / m
     r = com - x  # element CoMs relative to the robot CoM
+    # Inertia of each element about the robot CoM: I_e + m_e (|r|² I − r rᵀ).
+    about_com = inertia + mass[:, None, None] * (
+        jnp.sum(r * r, axis=1)[:, None, None] * jnp.eye(3) - r[:, :, None] * r[:, None, :]
+    )
+    moment = mass[:, None] * r  # first moments about the CoM
 
-    # Base linear velocity: every element moves with ṗ.
+    # Base: ṗ translates everything; ω rotates everything about the base origin.
     base_linear = jnp.concatenate([m * jnp.eye(3), jnp.zeros((3, 3))])
-    # Base angular velocity: the whole robot rotates rigidly about the base origin.
-    S_r = jnp.vectorize(so3.skew, signature="(3)->(3,3)")(r)
-    locked_inertia = jnp.sum(inertia, axis=0) - jnp.einsum("e,eij,ejk->ik", mass, S_r, S_r)
-    base_angular = jnp.concatenate([-m * so3.skew(x - q[:3]), locked_inertia])
+    base_angular = jnp.concatenate([-m * so3.skew(x - q[:3]), jnp.sum(about_com, axis=0)])
 
-    # Each joint moves the elements of its subtree (static mask).
+    # Joint j moves its subtree: composite mass, first moment and inertia from a static mask.
+    support = model.topology.joint_support[:, np.asarray(model.topology.inertial_body, int)].astype(float)
+    subtree_mass = support @ mass  # (nj,)
+    subtree_moment = support @ moment  # (nj, 3): Σ m_e (c_e − x)
+    subtree_inertia = jnp.einsum("je,eab->jab", support, about_com)  # (nj, 3, 3)
     axes, origins = joint_axes_world(model, R_body, p_body)
-    support = model.topology.joint_support[:, np.asarray(model.topology.inertial_body, int)]
-    prismatic = np.asarray(model.topology.joint_is_prismatic, bool)
-    weights = jnp.where(support, mass[None, :], 0.0)  # (nj, ne)
-    lever = com[None, :, :] - origins[:, None, :]
-    velocity = jnp.where(
-        prismatic[:, None, None], axes[:, None, :], jnp.cross(axes[:, None, :], lever)
-    )  # (nj, ne, 3): velocity of each element CoM per unit joint rate
-    linear = jnp.einsum("je,jei->ij", weights, velocity)
-    spin = jnp.einsum("je,eik,jk->ij", support.astype(float), inertia, axes)
-    spin = jnp.where(prismatic[None, :], 0.0, spin)
-    angular = spin + jnp.einsum("je,jei->ij", weights, jnp.cross(r[None], velocity))
-    joints = jnp.concatenate([linear, angular])[:, np.asarray(model.topology.optimised_joints, int)]
+    lever = x - origins  # (nj, 3): from each joint axis to the robot CoM
+    # Revolute: v_e = z × (c_e − o) = z × (r_e + lever); prismatic: v_e = z.
+    revolute_linear = jnp.cross(axes, subtree_moment + subtree_mass[:, None] * lever)
+    revolute_angular = jnp.einsum("jab,jb->ja", subtree_inertia, axes) + jnp.cross(
+        subtree_moment, jnp.cross(axes, lever)
+    )
+    prismatic = np.asarray(model.topology.joint_is_prismatic, bool)[:, None]
+    linear = jnp.where(prismatic, subtree_mass[:, None] * axes, revolute_linear)
+    angular = jnp.where(prismatic, jnp.cross(subtree_moment, axes), revolute_angular)
+    joints = jnp.concatenate([linear, angular], axis=1)[np.asarray(model.topology.optimised_joints, int)].T
     return jnp.concatenate([base_linear, base_angular, joints], axis=1)
 
 

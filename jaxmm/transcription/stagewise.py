@@ -1,0 +1,168 @@
+"""The stage-wise NLP format shared by the transcription and the solver (nothing robotic here).
+
+    minimise    Σ_k φ(z_k, θ, d_k) + ψ(θ)
+    subject to  e(z_k, θ) = 0                      k = 0..K−1   (path equalities)
+                t(z_k, z_{k+1}, θ) = 0             k = 0..K−2   (transition equalities)
+                l_g ≤ g(z_k, θ) ≤ u_g              k = 0..K−1   (path inequalities)
+                l_h ≤ h(z_k, z_{k+1}, θ) ≤ u_h     k = 0..K−2   (transition inequalities)
+                z_lo[k] ≤ z_k ≤ z_hi[k],  θ_lo ≤ θ ≤ θ_hi       (boxes)
+
+z_k (nz,) are the knot variables, θ (ng,) the global ones, d_k per-knot data. Every function
+also takes ``args``, a pytree of parameters (differentiable). Each function touches at most two
+consecutive knots, so Jacobians and Hessians are block-banded; ``blocks`` computes the blocks
+with ``jax.jacfwd`` vmapped over the knots.
+"""
+
+import dataclasses
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+
+
+@dataclasses.dataclass(frozen=True)
+class StagewiseFunctions:
+    """The callables of a stage-wise NLP (static, hashable: module-level functions).
+
+    knot_cost(args, z, θ, d) → (); global_cost(args, θ) → (); path_equality(args, z, θ) → (me,);
+    transition_equality(args, z, z_next, θ) → (mt,); path_inequality(args, z, θ) → (mg,);
+    transition_inequality(args, z, z_next, θ) → (mh,).
+    """
+
+    knot_cost: Callable
+    global_cost: Callable
+    path_equality: Callable
+    transition_equality: Callable
+    path_inequality: Callable
+    transition_inequality: Callable
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class StagewiseNLP:
+    """A stage-wise NLP instance: parameters, per-knot data, bounds, and its functions.
+
+    args: parameter pytree; knot_data: (K, ...) per-knot data d_k; z_lower, z_upper: (K, nz);
+    theta_lower, theta_upper: (ng,); path_lower, path_upper: (mg,) bounds of g (same at every
+    knot); transition_lower, transition_upper: (mh,) bounds of h.
+    """
+
+    args: Any
+    knot_data: jax.Array
+    z_lower: jax.Array
+    z_upper: jax.Array
+    theta_lower: jax.Array
+    theta_upper: jax.Array
+    path_lower: jax.Array
+    path_upper: jax.Array
+    transition_lower: jax.Array
+    transition_upper: jax.Array
+    functions: StagewiseFunctions = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def n_knots(self):
+        return self.z_lower.shape[0]
+
+    @property
+    def knot_size(self):
+        return self.z_lower.shape[1]
+
+    @property
+    def global_size(self):
+        return self.theta_lower.shape[0]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Residuals:
+    """Values of every function at (Z, θ): cost (), path (K, ·), transition (K − 1, ·)."""
+
+    cost: jax.Array
+    path_equality: jax.Array
+    transition_equality: jax.Array
+    path_inequality: jax.Array
+    transition_inequality: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Blocks:
+    """First and second derivatives in block form (K knots, nz knot size, ng globals).
+
+    cost_z (K, nz), cost_theta (ng,): cost gradient; cost_zz (K, nz, nz), cost_ztheta
+    (K, nz, ng), cost_thetatheta (ng, ng): cost Hessian (the cost is knot-separable);
+    for a path function p: p_z (K, m, nz), p_theta (K, m, ng); for a transition function t:
+    t_z (K − 1, m, nz) w.r.t. z_k, t_znext (K − 1, m, nz) w.r.t. z_{k+1}, t_theta (K − 1, m, ng).
+    """
+
+    cost_z: jax.Array
+    cost_theta: jax.Array
+    cost_zz: jax.Array
+    cost_ztheta: jax.Array
+    cost_thetatheta: jax.Array
+    path_equality_z: jax.Array
+    path_equality_theta: jax.Array
+    transition_equality_z: jax.Array
+    transition_equality_znext: jax.Array
+    transition_equality_theta: jax.Array
+    path_inequality_z: jax.Array
+    path_inequality_theta: jax.Array
+    transition_inequality_z: jax.Array
+    transition_inequality_znext: jax.Array
+    transition_inequality_theta: jax.Array
+
+
+def residuals(nlp, Z, theta):
+    """Every function of the NLP at (Z (K, nz), θ (ng,)): a ``Residuals``."""
+    f, a = nlp.functions, nlp.args
+    path = lambda fn: jax.vmap(fn, in_axes=(None, 0, None))(a, Z, theta)  # noqa: E731
+    transition = lambda fn: jax.vmap(fn, in_axes=(None, 0, 0, None))(a, Z[:-1], Z[1:], theta)  # noqa: E731
+    knot_costs = jax.vmap(f.knot_cost, in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
+    return Residuals(
+        cost=jnp.sum(knot_costs) + f.global_cost(a, theta),
+        path_equality=path(f.path_equality),
+        transition_equality=transition(f.transition_equality),
+        path_inequality=path(f.path_inequality),
+        transition_inequality=transition(f.transition_inequality),
+    )
+
+
+def blocks(nlp, Z, theta):
+    """Block Jacobians of every constraint and the cost's gradient and Hessian blocks.
+
+    Per-knot ``jax.jacfwd`` vmapped over the knots: no dense Jacobian is ever formed.
+    """
+    f, a = nlp.functions, nlp.args
+
+    def path(fn):
+        return jax.vmap(jax.jacfwd(fn, argnums=(1, 2)), in_axes=(None, 0, None))(a, Z, theta)
+
+    def transition(fn):
+        return jax.vmap(jax.jacfwd(fn, argnums=(1, 2, 3)), in_axes=(None, 0, 0, None))(a, Z[:-1], Z[1:], theta)
+
+    knot_grad = jax.grad(f.knot_cost, argnums=(1, 2))
+    cost_z, cost_theta = jax.vmap(knot_grad, in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
+    hessian = jax.vmap(jax.jacfwd(knot_grad, argnums=(1, 2)), in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
+    (cost_zz, cost_ztheta), (_, cost_thetatheta) = hessian
+    global_grad = jax.grad(f.global_cost, argnums=1)
+    pe_z, pe_theta = path(f.path_equality)
+    te_z, te_znext, te_theta = transition(f.transition_equality)
+    pi_z, pi_theta = path(f.path_inequality)
+    ti_z, ti_znext, ti_theta = transition(f.transition_inequality)
+    return Blocks(
+        cost_z=cost_z,
+        cost_theta=jnp.sum(cost_theta, axis=0) + global_grad(a, theta),
+        cost_zz=cost_zz,
+        cost_ztheta=cost_ztheta,
+        cost_thetatheta=jnp.sum(cost_thetatheta, axis=0) + jax.hessian(f.global_cost, argnums=1)(a, theta),
+        path_equality_z=pe_z,
+        path_equality_theta=pe_theta,
+        transition_equality_z=te_z,
+        transition_equality_znext=te_znext,
+        transition_equality_theta=te_theta,
+        path_inequality_z=pi_z,
+        path_inequality_theta=pi_theta,
+        transition_inequality_z=ti_z,
+        transition_inequality_znext=ti_znext,
+        transition_inequality_theta=ti_theta,
+    )
