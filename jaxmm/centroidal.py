@@ -1,10 +1,14 @@
 """Total mass, centre of mass and the centroidal momentum matrix (eq. 4, 15, 16)."""
 
+import functools
+
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
 from jaxmm import so3
-from jaxmm.configuration import check_velocity
+from jaxmm.configuration import check_configuration, check_velocity
 from jaxmm.kinematics import body_poses, joint_axes_world
 
 
@@ -39,7 +43,10 @@ def centroidal_momentum_matrix(model, q):
     Each column is computed from the composite mass, first moment and inertia (about the CoM)
     of the subtree the joint moves, so the cost is linear in the number of links.
     """
-    R_body, p_body = body_poses(model, q)
+    return _cmm_from_poses(model, q, *body_poses(model, q))
+
+
+def _cmm_from_poses(model, q, R_body, p_body):
     com, inertia = _inertials_world(model, R_body, p_body)
     mass = model.inertial_mass
     m = jnp.sum(mass)
@@ -72,6 +79,62 @@ def centroidal_momentum_matrix(model, q):
     angular = jnp.where(prismatic, jnp.cross(subtree_moment, axes), revolute_angular)
     joints = jnp.concatenate([linear, angular], axis=1)[np.asarray(model.topology.optimised_joints, int)].T
     return jnp.concatenate([base_linear, base_angular, joints], axis=1)
+
+
+def _bundle(model, q, frames):
+    R_body, p_body = body_poses(model, q)
+    com, _ = _inertials_world(model, R_body, p_body)
+    bodies = np.asarray(model.topology.frame_body, int)[list(frames)]
+    indices = np.asarray(frames, int)
+    positions = p_body[bodies] + jnp.einsum("fij,fj->fi", R_body[bodies], model.frame_translation[indices])
+    rotations = R_body[bodies] @ model.frame_rotation[indices]
+    return dict(
+        com=model.inertial_mass @ com / total_mass(model),
+        cmm=_cmm_from_poses(model, q, R_body, p_body),
+        frame_positions=positions,
+        frame_rotations=rotations,
+    )
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _fast_bundle(model, q, frames):
+    return _bundle(model, q, frames)
+
+
+def _fast_bundle_jvp(frames, primals, tangents):
+    model, q = primals
+    model_dot, q_dot = tangents
+    out = _bundle(model, q, frames)
+    tangent = jax.tree.map(jnp.zeros_like, out)
+    if not isinstance(q_dot, SymbolicZero):
+        # One Jacobian with n_q tangents, then a product: cheap for many input tangents.
+        jacobian = jax.jacfwd(_bundle, argnums=1)(model, q, frames)
+        tangent = jax.tree.map(lambda t, J: t + J @ q_dot, tangent, jacobian)
+    model_leaves = jax.tree.leaves(model_dot, is_leaf=lambda x: isinstance(x, SymbolicZero))
+    if any(not isinstance(leaf, SymbolicZero) for leaf in model_leaves):
+        model_dot = jax.tree.map(
+            lambda t, m: jnp.zeros_like(m) if isinstance(t, SymbolicZero) else t,
+            model_dot, model, is_leaf=lambda x: isinstance(x, SymbolicZero),
+        )
+        _, model_tangent = jax.jvp(lambda m: _bundle(m, q, frames), (model,), (model_dot,))
+        tangent = jax.tree.map(jnp.add, tangent, model_tangent)
+    return out, tangent
+
+
+_fast_bundle.defjvp(_fast_bundle_jvp, symbolic_zeros=True)
+
+
+def centroidal_kinematics(model, q, frames):
+    """Everything the centroidal transcription needs at q, from one kinematics pass.
+
+    frames: names or indices (static). Returns {com (3,), cmm (6, 6 + n), frame_positions
+    (k, 3), frame_rotations (k, 3, 3)}, as ``com_position``, ``centroidal_momentum_matrix``
+    and ``frame_poses`` would. Its forward-mode derivative computes the (7 + n)-column
+    Jacobian once and applies it to every tangent, so ``jax.jacfwd`` over many variables that
+    include q costs about as much as over q alone.
+    """
+    q = check_configuration(model, q)
+    return _fast_bundle(model, q, model.frame_indices(frames))
 
 
 def com_jacobian(model, q):

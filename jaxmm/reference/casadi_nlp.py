@@ -47,6 +47,10 @@ HESSIANS = ("exact", "limited-memory")
 # Below this squared angle the Taylor series of Exp and Log are exact to float64 rounding.
 _SMALL_ANGLE_SQ = 1e-8
 _IDENTITY = (0.0, 0.0, 0.0, 1.0)
+# Per-knot Functions: forward derivatives through their symbolic (SX) Jacobian rather than
+# many forward sweeps; with the derivative functions likewise, the exact Lagrangian Hessian is
+# the symbolic Hessian of each knot. ~7x faster Jacobians, ~3x faster Hessians.
+_FUNCTION_OPTIONS = dict(cse=True, enable_forward=False, der_options=dict(cse=True, enable_forward=False))
 
 
 # --------------------------------------------------------------------------- quaternions
@@ -239,42 +243,45 @@ class ReferenceNLP:
     def _path_function(self):
         """Function z (nz,) → the path equalities then the path inequalities of one knot."""
         z, v = self._knot("z")
-        P = self._numbers.params
         nc, nj = self.layout.n_contacts, self.layout.n_jets
         com, cmm, corners, jet_positions, jet_axes = self._kinematics(
             v["base_position"], v["base_quaternion"], v["joint_positions"]
         )
         x = v["com"]
-        forces = cs.reshape(v["contact_forces"], 3, nc)
-        points = cs.reshape(v["contact_points"], 3, nc)
-        jet_forces = [-v["thrust"][j] * jet_axes[:, j] for j in range(nj)]
-        contact_torque = sum((cs.cross(points[:, i] - x, forces[:, i]) for i in range(nc)), cs.SX.zeros(3))
-        jet_torque = sum((cs.cross(jet_positions[:, j] - x, jet_forces[j]) for j in range(nj)), cs.SX.zeros(3))
+        forces, points = cs.reshape(v["contact_forces"], 3, nc), cs.reshape(v["contact_points"], 3, nc)
+        mu = float(self._numbers.params["friction_coefficient"])
         nu = cs.vertcat(v["base_linear_velocity"], v["base_angular_velocity"], v["joint_velocities"])
-        mu = float(P["friction_coefficient"])
         families = {
-            # eq. (14)
-            "centroidal_dynamics": cs.vertcat(
-                self.mass * v["com_acceleration"] - cs.sum2(forces) - sum(jet_forces, cs.SX.zeros(3))
-                - self.mass * cs.DM(P["gravity"]),
-                v["angular_momentum_rate"] - contact_torque - jet_torque,
-            ),
+            "centroidal_dynamics": self._centroidal_dynamics(v, forces, points, jet_positions, jet_axes),
             "com": x - com,  # eq. (15)
             "angular_momentum": v["angular_momentum"] - cs.mtimes(cmm, nu),  # eq. (16)
             "contact_points": v["contact_points"] - cs.vec(corners),  # eq. (17)
             "jet_dynamics": v["thrust_acceleration"] - self._jet_model(v),  # eq. (8), (23)
-            # eq. (12), (19)
+            # eq. (12), (19): per corner f_x − μ f_z, −f_x − μ f_z, f_y − μ f_z, −f_y − μ f_z
             "friction_cone": _stack([
                 cs.vertcat(f[0] - mu * f[2], -f[0] - mu * f[2], f[1] - mu * f[2], -f[1] - mu * f[2])
                 for f in (forces[:, i] for i in range(nc))
             ]),
-            # eq. (20)
-            "normal_complementarity": (forces[2, :] * points[2, :]).T - v["normal_slack"],
+            "normal_complementarity": (forces[2, :] * points[2, :]).T - v["normal_slack"],  # eq. (20)
             "corner_com": _stack([points[:, i] - x for i in range(nc)]),  # eq. (29)
             "jet_com": _stack([jet_positions[:, j] - x for j in range(nj)]),
         }
         names = PATH_EQUALITIES + PATH_INEQUALITIES
-        return cs.Function("path", [z], [families[n] for n in names], ["z"], list(names), dict(cse=True))
+        return cs.Function("path", [z], [families[n] for n in names], ["z"], list(names), _FUNCTION_OPTIONS)
+
+    def _centroidal_dynamics(self, v, forces, points, jet_positions, jet_axes):
+        """Eq. (14), 6 rows: m ẍ − Σ f_i − Σ F_j − m g and ḣ_ω − Σ (c_i − x) × f_i
+        − Σ (p_j − x) × F_j, with F_j = −T_j R_j e_z (eq. 5). forces, points: (3, nc);
+        jet_positions, jet_axes (R_j e_z): (3, nj)."""
+        x = v["com"]
+        jet_forces = [-v["thrust"][j] * jet_axes[:, j] for j in range(self.layout.n_jets)]
+        moments = [cs.cross(points[:, i] - x, forces[:, i]) for i in range(self.layout.n_contacts)]
+        moments += [cs.cross(jet_positions[:, j] - x, F) for j, F in enumerate(jet_forces)]
+        gravity = cs.DM(self._numbers.params["gravity"])
+        return cs.vertcat(
+            self.mass * v["com_acceleration"] - cs.sum2(forces) - sum(jet_forces, cs.SX.zeros(3)) - self.mass * gravity,
+            v["angular_momentum_rate"] - sum(moments, cs.SX.zeros(3)),
+        )
 
     def _jet_model(self, v):
         """T̈ = f(T, Ṫ) + g(T, Ṫ, u) of eq. (8), per jet: (nj,) SX."""
@@ -323,48 +330,62 @@ class ReferenceNLP:
         names = TRANSITION_EQUALITIES + TRANSITION_INEQUALITIES
         return cs.Function(
             "transition", [z, z_next, total_time], [families[n] for n in names],
-            ["z", "z_next", "total_time"], list(names), dict(cse=True),
+            ["z", "z_next", "total_time"], list(names), _FUNCTION_OPTIONS,
         )
 
     def _cost_function(self, term):
         """Function z (nz,) → one knot's part of a cost term of eq. (32) (docs/formulation.md):
         "running" l[k] (without Δt), "final" l_N, "initial" l_0, "slack" (one knot's l_ε)."""
         z, v = self._knot("z")
-        W, P = self._numbers.weights, self._numbers.params
-        s_bar = cs.DM(P["reference_configuration"][7:])
+        terms = dict(running=self._running, final=self._final, initial=self._initial, slack=self._slack)
+        return cs.Function(term, [z], [terms[term](v)], ["z"], [term], _FUNCTION_OPTIONS)
+
+    def _posture_error(self, v):
+        """s − s̄, (n,) [rad]."""
+        return v["joint_positions"] - cs.DM(self._numbers.params["reference_configuration"][7:])
+
+    def _running(self, v):
+        """l[k] of eq. (32), without the Δt factor."""
+        W, sq = self._numbers.weights, cs.sumsqr
         upper = list(self.task.upper_body_joints)
         lower = [j for j in range(self.layout.n_joints) if j not in upper]
-        sdot, sq = v["joint_velocities"], cs.sumsqr
-        if term == "running":
-            value = (
-                W["com_acc"] * sq(v["com_acceleration"]) + W["com_vel"] * sq(v["com_velocity"])
-                + W["com_vel_xy"] * sq(v["com_velocity"][:2]) + W["ang_mom_rate"] * sq(v["angular_momentum_rate"])
-                + W["ang_mom"] * sq(v["angular_momentum"]) + W["joint_vel_upper"] * sq(sdot[upper])
-                + W["joint_vel_lower"] * sq(sdot[lower]) + W["posture"] * sq(v["joint_positions"] - s_bar)
-                + W["force"] * sq(v["contact_forces"]) + W["force_rate"] * sq(v["contact_force_rates"])
-                + W["thrust"] * sq(v["thrust"]) + W["throttle"] * sq(v["throttle"])
-                + W["base_orientation"] * sq(v["base_quaternion"] - cs.DM(_IDENTITY))
-            )
-        elif term == "final":
-            value = (
-                W["final_momentum"] * (sq(v["com_velocity"]) + sq(v["com_acceleration"])
-                                       + sq(v["angular_momentum"]) + sq(v["angular_momentum_rate"]))
-                + W["final_thrust"] * sq(v["thrust"]) + W["final_posture"] * sq(v["joint_positions"] - s_bar)
-                + W["final_force"] * sq(v["contact_forces"])
-            )
-        elif term == "initial":
-            rho = v["base_quaternion"] / cs.norm_2(v["base_quaternion"])
-            rho_bar = cs.DM(P["reference_configuration"][3:7])
-            error = _quaternion_log(_quaternion_multiply(_quaternion_conjugate(rho_bar), rho))
-            value = (
-                W["initial_posture"] * sq(v["joint_positions"] - s_bar)
-                + W["initial_base_orientation"] * sq(error) + W["initial_force"] * sq(v["contact_forces"])
-            )
-        else:
-            slacks = cs.vertcat(v["normal_slack"], v["tangential_slack"])
-            penalty = cs.sum1(slacks) if self.task.slack_penalty == "linear" else sq(slacks)
-            value = W["complementarity_slack"] * penalty
-        return cs.Function(term, [z], [value], ["z"], [term], dict(cse=True))
+        sdot = v["joint_velocities"]
+        return (
+            W["com_acc"] * sq(v["com_acceleration"]) + W["com_vel"] * sq(v["com_velocity"])
+            + W["com_vel_xy"] * sq(v["com_velocity"][:2]) + W["ang_mom_rate"] * sq(v["angular_momentum_rate"])
+            + W["ang_mom"] * sq(v["angular_momentum"]) + W["joint_vel_upper"] * sq(sdot[upper])
+            + W["joint_vel_lower"] * sq(sdot[lower]) + W["posture"] * sq(self._posture_error(v))
+            + W["force"] * sq(v["contact_forces"]) + W["force_rate"] * sq(v["contact_force_rates"])
+            + W["thrust"] * sq(v["thrust"]) + W["throttle"] * sq(v["throttle"])
+            + W["base_orientation"] * sq(v["base_quaternion"] - cs.DM(_IDENTITY))
+        )
+
+    def _final(self, v):
+        """l_N: final momentum, thrust, posture and force terms."""
+        W, sq = self._numbers.weights, cs.sumsqr
+        momentum = (sq(v["com_velocity"]) + sq(v["com_acceleration"]) + sq(v["angular_momentum"])
+                    + sq(v["angular_momentum_rate"]))
+        return (
+            W["final_momentum"] * momentum + W["final_thrust"] * sq(v["thrust"])
+            + W["final_posture"] * sq(self._posture_error(v)) + W["final_force"] * sq(v["contact_forces"])
+        )
+
+    def _initial(self, v):
+        """l_0, with the orientation error Log(ρ̄* ⊗ ρ/‖ρ‖) on SO(3)."""
+        W, sq = self._numbers.weights, cs.sumsqr
+        rho = v["base_quaternion"] / cs.norm_2(v["base_quaternion"])
+        rho_bar = cs.DM(self._numbers.params["reference_configuration"][3:7])
+        error = _quaternion_log(_quaternion_multiply(_quaternion_conjugate(rho_bar), rho))
+        return (
+            W["initial_posture"] * sq(self._posture_error(v)) + W["initial_base_orientation"] * sq(error)
+            + W["initial_force"] * sq(v["contact_forces"])
+        )
+
+    def _slack(self, v):
+        """w_ε Σ_i (ε_n,i + ε_t,i) ("linear", published) or w_ε Σ_i (ε_n,i² + ε_t,i²) ("squared")."""
+        slacks = cs.vertcat(v["normal_slack"], v["tangential_slack"])
+        penalty = cs.sum1(slacks) if self.task.slack_penalty == "linear" else cs.sumsqr(slacks)
+        return self._numbers.weights["complementarity_slack"] * penalty
 
     # ---- the whole horizon
 
@@ -518,12 +539,25 @@ class ReferenceNLP:
 
     # ---- IPOPT
 
+    def _ipopt_solver(self, d, ipopt_options):
+        """IPOPT on the scaled variables z̃ = w / d, with g every family stacked as in
+        ``constraint_bounds``."""
+        w_scaled = cs.MX.sym("w_scaled", self.n_variables)
+        families, costs = self.symbolic(cs.DM(d) * w_scaled)
+        g = cs.vertcat(*[cs.vec(families[name]) for name in self.family_names()])
+        return cs.nlpsol(
+            "reference", "ipopt", {"x": w_scaled, "f": costs["total"], "g": g},
+            dict(ipopt=ipopt_options, print_time=False),
+        )
+
     def solve(self, guess, *, tol=1e-4, max_iter=3000, print_level=0, scaled=True, hessian="exact", options=None):
         """Solve with IPOPT + MUMPS from a guess (a jaxmm ``Trajectory``).
 
         tol: IPOPT's ``tol`` and ``constr_viol_tol`` (constraint violation in physical units).
         scaled: IPOPT sees z̃ = z / d (``scale``). hessian: "exact" (default) or
-        "limited-memory" (the paper's runs). options: extra IPOPT options {name: value}.
+        "limited-memory" (the paper's runs, with MA97; with MUMPS it did not converge on
+        take-off N = 10 within 3000 iterations, the exact Hessian does in ~200).
+        options: extra IPOPT options {name: value}.
         Returns (``Trajectory``, info) with info: status, success, objective, iterations,
         wall_time [s] (IPOPT only), setup_time [s] (solver construction), max_violation,
         hessian, scaled.
@@ -532,18 +566,11 @@ class ReferenceNLP:
             raise ValueError(f"hessian must be one of {HESSIANS}, got {hessian!r}")
         start = time.perf_counter()
         d = self.scale() if scaled else np.ones(self.n_variables)
-        w_scaled = cs.MX.sym("w_scaled", self.n_variables)
-        families, costs = self.symbolic(cs.DM(d) * w_scaled)
-        g = cs.vertcat(*[cs.vec(families[name]) for name in self.family_names()])
         ipopt = dict(
             linear_solver="mumps", tol=tol, constr_viol_tol=tol, max_iter=max_iter,
-            print_level=print_level, hessian_approximation=hessian,
+            print_level=print_level, hessian_approximation=hessian, sb="yes",
         )
-        ipopt.update(options or {})
-        solver = cs.nlpsol(
-            "reference", "ipopt", {"x": w_scaled, "f": costs["total"], "g": g},
-            dict(ipopt=ipopt, print_time=False),
-        )
+        solver = self._ipopt_solver(d, dict(ipopt, **(options or {})))
         lower, upper = self.variable_bounds()
         lower_g, upper_g = self.constraint_bounds()
         setup_time = time.perf_counter() - start
@@ -584,7 +611,8 @@ def _knot_boxes(task, P):
     fields["contact_forces"] = (nonnegative_z, np.full((nc, 3), np.inf))
     fields["contact_points"] = (nonnegative_z, np.full((nc, 3), np.inf))
     fields["thrust"] = (np.zeros(layout.n_jets), P["max_thrust"])
-    fields["throttle"] = (np.full(layout.n_jets, P["throttle_range"][0]), np.full(layout.n_jets, P["throttle_range"][1]))
+    low, high = P["throttle_range"]
+    fields["throttle"] = (np.full(layout.n_jets, low), np.full(layout.n_jets, high))
     for name in ("normal_slack", "tangential_slack"):
         fields[name] = (np.zeros(nc), np.full(nc, np.inf))
     lower = np.concatenate([np.ravel(fields[name][0]) for name in FIELDS])

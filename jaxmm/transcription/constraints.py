@@ -6,8 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmm import so3
-from jaxmm.centroidal import centroidal_momentum_matrix, com_position, total_mass
-from jaxmm.kinematics import frame_poses
+from jaxmm.centroidal import centroidal_kinematics, total_mass
 from jaxmm.physics.centroidal_dynamics import momentum_rate
 from jaxmm.physics.contacts import friction_cone, normal_complementarity, planar_complementarity
 from jaxmm.physics.jets import thrust_acceleration, thrust_forces
@@ -27,16 +26,14 @@ def _kinematics(task, knot):
     """Frame poses of contacts and jets, CoM and CMM at the knot's configuration."""
     robot = task.robot
     model = robot.model
-    q = knot.configuration
-    frames = robot.contact_frames + robot.jet_frames
-    positions, rotations = frame_poses(model, q, frames)
+    kin = centroidal_kinematics(model, knot.configuration, robot.contact_frames + robot.jet_frames)
     nc = len(robot.contact_frames)
     return dict(
-        corner_positions=positions[:nc],
-        jet_positions=positions[nc:],
-        jet_rotations=rotations[nc:],
-        com=com_position(model, q),
-        cmm=centroidal_momentum_matrix(model, q),
+        corner_positions=kin["frame_positions"][:nc],
+        jet_positions=kin["frame_positions"][nc:],
+        jet_rotations=kin["frame_rotations"][nc:],
+        com=kin["com"],
+        cmm=kin["cmm"],
     )
 
 

@@ -1,0 +1,1 @@
+"""Solvers for stage-wise NLPs (nothing robot-specific)."""

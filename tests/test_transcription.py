@@ -1,0 +1,165 @@
+"""The transcription: block Jacobians against dense autodiff, costs, bounds and scenarios."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmm
+from jaxmm.tasks import SCENARIOS, build_task, initial_guess, scenario
+from jaxmm.transcription import constraints, costs
+from jaxmm.transcription import nlp as transcription
+from jaxmm.transcription import stagewise
+
+
+def _random_point(task, seed):
+    """The initial guess with large random perturbations (scaled variables)."""
+    Z, theta = transcription.to_variables(task, initial_guess(task))
+    rng = np.random.default_rng(seed)
+    Z = Z + 0.3 * rng.normal(size=Z.shape)
+    return jnp.asarray(Z), theta * (0.6 + 0.3 * rng.random())
+
+
+def _dense_jacobian(nlp, blocks_of, K, nz, ng):
+    """Assemble block Jacobians of one residual group into a dense (rows, K nz + ng) matrix."""
+    z_blocks, znext_blocks, theta_blocks = blocks_of
+    count, m = theta_blocks.shape[:2]
+    J = np.zeros((count * m, K * nz + ng))
+    for k in range(count):
+        rows = slice(k * m, (k + 1) * m)
+        J[rows, k * nz : (k + 1) * nz] += z_blocks[k]
+        if znext_blocks is not None:
+            J[rows, (k + 1) * nz : (k + 2) * nz] += znext_blocks[k]
+        J[rows, K * nz :] = theta_blocks[k]
+    return J
+
+
+@pytest.mark.parametrize("name, options", [
+    ("take_off", {}),
+    ("jumping", dict(integration="backward_euler", slack_penalty="squared")),
+])
+def test_block_jacobians_equal_dense_autodiff(name, options):
+    task = scenario(name, knots=4, **options)
+    nlp = transcription.stagewise_nlp(task)
+    Z, theta = _random_point(task, seed=1)
+    K, nz = Z.shape
+    ng = theta.shape[0]
+    B = jax.jit(stagewise.blocks)(nlp, Z, theta)
+
+    def flat(w, group):
+        return getattr(stagewise.residuals(nlp, w[: K * nz].reshape(K, nz), w[K * nz :]), group).reshape(-1)
+
+    w = jnp.concatenate([Z.reshape(-1), theta])
+    groups = {
+        "path_equality": (B.path_equality_z, None, B.path_equality_theta),
+        "transition_equality": (B.transition_equality_z, B.transition_equality_znext, B.transition_equality_theta),
+        "path_inequality": (B.path_inequality_z, None, B.path_inequality_theta),
+        "transition_inequality": (B.transition_inequality_z, B.transition_inequality_znext, B.transition_inequality_theta),
+    }
+    for group, blocks_of in groups.items():
+        dense = np.asarray(jax.jit(jax.jacfwd(flat), static_argnums=1)(w, group))
+        assembled = _dense_jacobian(nlp, blocks_of, K, nz, ng)
+        assert dense.shape == assembled.shape and dense.size > 0
+        assert np.abs(dense - assembled).max() <= 1e-12 * max(1.0, np.abs(dense).max()), group
+
+    cost = lambda w: stagewise.residuals(nlp, w[: K * nz].reshape(K, nz), w[K * nz :]).cost  # noqa: E731
+    gradient = np.asarray(jax.jit(jax.grad(cost))(w))
+    assert np.allclose(gradient[: K * nz], np.asarray(B.cost_z).reshape(-1), rtol=1e-12, atol=1e-9)
+    assert np.allclose(gradient[K * nz :], B.cost_theta, rtol=1e-12, atol=1e-9)
+    hessian = np.asarray(jax.jit(jax.hessian(cost))(w))
+    for k in range(K):
+        block = slice(k * nz, (k + 1) * nz)
+        assert np.allclose(hessian[block, block], B.cost_zz[k], rtol=1e-12, atol=1e-9)
+        assert np.allclose(hessian[block, K * nz :], B.cost_ztheta[k], rtol=1e-12, atol=1e-9)
+        off = np.delete(hessian[block, : K * nz], np.arange(k * nz, (k + 1) * nz), axis=1)
+        assert np.abs(off).max() == 0.0  # the cost is knot-separable
+    assert np.allclose(hessian[K * nz :, K * nz :], B.cost_thetatheta, rtol=1e-12, atol=1e-9)
+
+
+def test_residual_families_match_the_formulation():
+    task = scenario("take_off", knots=4)
+    trajectory = initial_guess(task)
+    values = constraints.evaluate(task, trajectory)
+    rows = {name: size for group in transcription.family_rows(task).values() for name, size in group}
+    assert set(values) == set(rows)
+    for name, value in values.items():
+        expected_knots = 5 if name in constraints.PATH_EQUALITIES + constraints.PATH_INEQUALITIES else 4
+        assert value.shape == (expected_knots, rows[name]), name
+    nlp = transcription.stagewise_nlp(task)
+    split = transcription.split_families(task, stagewise.residuals(nlp, *transcription.to_variables(task, trajectory)))
+    for name in values:
+        assert np.allclose(split[name], values[name], atol=1e-12), name
+
+
+def test_cost_split_adds_up_and_knot_sum_matches():
+    task = scenario("walk_to_fly", knots=6)
+    Z, theta = _random_point(task, seed=2)
+    trajectory = transcription.to_trajectory(task, Z, theta)
+    terms = costs.cost_terms(task, trajectory)
+    assert np.isclose(terms["total"], sum(v for k, v in terms.items() if k != "total"), rtol=1e-14)
+    assert np.isclose(terms["total"], costs.total_cost(task, trajectory), rtol=1e-12)
+    nlp = transcription.stagewise_nlp(task)
+    assert np.isclose(stagewise.residuals(nlp, Z, theta).cost, terms["total"], rtol=1e-12)
+
+
+def test_cost_is_differentiable_in_the_weights():
+    task = scenario("take_off", knots=4)
+    trajectory = initial_guess(task)
+    gradient = jax.grad(lambda w: costs.total_cost(task, trajectory, w))(task.weights)
+    # ∂J/∂w_final_thrust = ‖T[N]‖² = 4 · 30².
+    assert np.isclose(gradient.final_thrust, 4 * 30.0**2)
+    assert gradient.horizon == pytest.approx(float(trajectory.total_time))
+
+
+def test_boundary_conditions_are_knot_dependent_boxes():
+    task = scenario("take_off_and_landing", knots=10)
+    lower, upper = constraints.variable_bounds(task)
+    assert np.allclose(lower.knots.com[0], [0, 0, 0.57]) and np.allclose(upper.knots.com[0], [0, 0, 0.57])
+    assert np.allclose(lower.knots.com[-1], upper.knots.com[-1])
+    assert lower.knots.com[5, 2] == pytest.approx(0.80) and lower.knots.com[4, 2] == 0.0
+    assert np.all(upper.knots.contact_points[0, :, 2] == 0.0)
+    assert np.all(upper.knots.thrust[0] <= 1e-3) and np.allclose(upper.knots.thrust[1], [160, 160, 220, 220])
+    assert float(lower.total_time) == pytest.approx(0.5) and float(upper.total_time) == pytest.approx(1.0)
+    guess = initial_guess(task)
+    nlp = transcription.stagewise_nlp(task)
+    Z, _ = transcription.to_variables(task, guess)
+    assert Z.shape == nlp.z_lower.shape
+
+
+def test_all_scenarios_build_at_published_size():
+    for name, spec in SCENARIOS.items():
+        task = scenario(name)
+        assert task.n_intervals == spec["knots"]
+        nlp = transcription.stagewise_nlp(task)
+        assert nlp.z_lower.shape == (spec["knots"] + 1, task.layout.size)
+        assert np.all(np.asarray(nlp.z_lower) <= np.asarray(nlp.z_upper))
+    assert scenario("jumping").layout.n_jets == 0
+    assert scenario("take_off").layout.size == 178
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(knots=-3), "knots must be an integer N ≥ 2"),
+    (dict(knots=1), "knots must be an integer N ≥ 2"),
+    (dict(final_com=(0.0, 2.0, 0.8)), "outside the workspace bounds"),
+    (dict(final_com=(0.0, 0.0)), r"final_com must have shape \(3,\)"),
+    (dict(weights=dict(posture=[1.0, 2.0])), "weight 'posture' must be a scalar"),
+    (dict(weights=dict(postur=1.0)), "unknown cost weights"),
+    (dict(weights=dict(posture=-1.0)), "non-negative"),
+    (dict(integration="rk4"), "integration must be one of"),
+    (dict(min_dt=-0.1), "time-step bounds"),
+    (dict(jet_coefficients=np.zeros((4, 9))), r"jet_coefficients must have shape \(4, 10\)"),
+])
+def test_bad_task_input(kwargs, message):
+    knots = kwargs.pop("knots", 10)
+    with pytest.raises(ValueError, match=message):
+        scenario("take_off", knots=knots, **kwargs)
+
+
+def test_unknown_scenario_and_missing_jet_model():
+    with pytest.raises(ValueError, match="unknown scenario 'hover'; scenarios: take_off"):
+        scenario("hover")
+    robot = jaxmm.load_ironcub()
+    with pytest.raises(ValueError, match="has 4 jets: jet_coefficients"):
+        build_task(robot, (0, 0, 0.57), (0, 0, 0.8), 10, {})
+    with pytest.raises(jaxmm.UnknownNameError, match="unknown frame"):
+        jaxmm.load_robot(jaxmm.assemble_urdf(jaxmm.robots.ironcub_description()), jet_frames=["nozzle"])
