@@ -162,7 +162,7 @@ def variable_bounds(task):
     box("com", jnp.stack([-xy, -xy, 0.0]), jnp.stack([xy, xy, jnp.inf]))
     box("com", p.initial_com, p.initial_com, knots=0)
     box("com", p.final_com, p.final_com, knots=-1)
-    box("com", p.mid_com_height, None, knots=task.n_intervals // 2, entries=slice(2, 3))
+    box("com", jnp.maximum(p.mid_com_height, 0.0), None, knots=task.n_intervals // 2, entries=slice(2, 3))
     for field in ("com_velocity", "com_acceleration", "angular_momentum", "angular_momentum_rate"):
         box(field, -tol, tol, knots=0)
     box("base_quaternion", -1.0, 1.0)
