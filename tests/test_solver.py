@@ -1,0 +1,133 @@
+"""The augmented-Lagrangian solver on small stage-wise problems with known solutions."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmm  # noqa: F401  (float64)
+from jaxmm.solver import augmented_lagrangian as al
+from jaxmm.transcription.stagewise import StagewiseFunctions, StagewiseNLP
+
+K = 12
+EMPTY = jnp.zeros(0)
+
+
+# A double integrator (position, velocity, control) over K knots with a free global drift θ:
+# x⁺ = x + 0.1 v + 0.01 θ, v⁺ = v + 0.1 u; cost ½(x² + 0.1 v² + u²) per knot + ½(θ − a)².
+def _knot_cost(a, z, theta, d):
+    return 0.5 * (z[0] ** 2 + 0.1 * z[1] ** 2 + z[2] ** 2) + 0.0 * d
+
+
+def _global_cost(a, theta):
+    return 0.5 * (theta[0] - a) ** 2
+
+
+def _dynamics(a, z, z_next, theta):
+    return jnp.array([z_next[0] - z[0] - 0.1 * z[1] - 0.01 * theta[0], z_next[1] - z[1] - 0.1 * z[2]])
+
+
+def _no_path(a, z, theta):
+    return EMPTY
+
+
+def _no_transition(a, z, z_next, theta):
+    return EMPTY
+
+
+def _control_energy(a, z, theta):
+    return z[2:3] ** 2  # an inequality u² ≤ bound (nonlinear)
+
+
+INTEGRATOR = StagewiseFunctions(_knot_cost, _global_cost, _no_path, _dynamics, _no_path, _no_transition)
+CAPPED = StagewiseFunctions(_knot_cost, _global_cost, _no_path, _dynamics, _control_energy, _no_transition)
+
+
+def _integrator(functions=INTEGRATOR, a=2.0, start=1.0, u_max=np.inf, energy_cap=None):
+    lower = jnp.full((K, 3), -jnp.inf).at[0, :2].set([start, 0.0]).at[:, 2].set(-u_max)
+    upper = jnp.full((K, 3), jnp.inf).at[0, :2].set([start, 0.0]).at[:, 2].set(u_max)
+    path_bounds = (EMPTY, EMPTY) if energy_cap is None else (jnp.array([-jnp.inf]), jnp.array([energy_cap]))
+    return StagewiseNLP(
+        args=jnp.asarray(a), knot_data=jnp.zeros(K), z_lower=lower, z_upper=upper,
+        theta_lower=jnp.full(1, -jnp.inf), theta_upper=jnp.full(1, jnp.inf),
+        path_lower=path_bounds[0], path_upper=path_bounds[1], transition_lower=EMPTY, transition_upper=EMPTY,
+        functions=functions,
+    )
+
+
+def _dense_kkt_solution(a=2.0, start=1.0):
+    """The equality-constrained QP solved through its dense KKT system."""
+    n = K * 3 + 1
+
+    def f(w):
+        Z = w[:-1].reshape(K, 3)
+        return jnp.sum(jax.vmap(_knot_cost, (None, 0, None, None))(a, Z, w[-1:], 0.0)) + _global_cost(a, w[-1:])
+
+    def c(w):
+        Z = w[:-1].reshape(K, 3)
+        dynamics = jax.vmap(_dynamics, (None, 0, 0, None))(a, Z[:-1], Z[1:], w[-1:]).reshape(-1)
+        return jnp.concatenate([dynamics, Z[0, :2] - jnp.array([start, 0.0])])
+
+    w0 = jnp.zeros(n)
+    H, g, A, b = jax.hessian(f)(w0), jax.grad(f)(w0), jax.jacfwd(c)(w0), -c(w0)
+    kkt = np.block([[H, A.T], [A, np.zeros((A.shape[0], A.shape[0]))]])
+    return np.linalg.solve(kkt, np.concatenate([-g, b]))[:n]
+
+
+OPTIONS = al.Options(tolerance=1e-9, stationarity=1e-9)
+solve = jax.jit(al.solve, static_argnames="options")
+
+
+def test_equality_constrained_qp_matches_dense_kkt():
+    solution = solve(_integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    assert al.Status(int(solution.status)) is al.Status.CONVERGED
+    found = np.concatenate([np.asarray(solution.Z).reshape(-1), solution.theta])
+    assert np.abs(found - _dense_kkt_solution()).max() <= 1e-7
+    assert float(solution.violation) <= 1e-9
+    assert np.isfinite(np.asarray(solution.history)[: int(solution.inner_iterations)]).all()
+
+
+def test_bounds_are_kept_and_active_at_the_solution():
+    unbounded = _dense_kkt_solution().reshape(-1)[:-1].reshape(K, 3)
+    u_max = 0.5 * np.abs(unbounded[:, 2]).max()
+    solution = solve(_integrator(u_max=u_max), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    assert al.Status(int(solution.status)) is al.Status.CONVERGED
+    u = np.asarray(solution.Z[:, 2])
+    assert np.all(np.abs(u) <= u_max + 1e-15)  # iterates stay in the box exactly
+    assert np.isclose(np.abs(u).max(), u_max)
+
+
+def test_nonlinear_inequality_matches_the_equivalent_box():
+    """u² ≤ c as a path inequality gives the same optimum as the box |u| ≤ √c."""
+    cap = 0.01
+    boxed = solve(_integrator(u_max=np.sqrt(cap)), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    inequality = solve(_integrator(CAPPED, energy_cap=cap), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    assert al.Status(int(inequality.status)) is al.Status.CONVERGED
+    assert np.abs(np.asarray(inequality.Z) - np.asarray(boxed.Z)).max() <= 1e-6
+    assert np.all(np.asarray(inequality.multipliers.path_inequality) >= -1e-12)
+
+
+def test_vmap_over_parameters_equals_a_loop():
+    targets = jnp.array([0.0, 1.0, 3.0])
+    starts = jnp.array([1.0, -0.5, 0.2])
+    batched = jax.jit(jax.vmap(lambda a, s: al.solve(_integrator(a=a, start=s), jnp.zeros((K, 3)), jnp.zeros(1), OPTIONS)))(
+        targets, starts
+    )
+    for i in range(3):
+        single = solve(_integrator(a=targets[i], start=starts[i]), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+        assert np.allclose(batched.Z[i], single.Z, atol=1e-10)
+        assert int(batched.status[i]) == int(single.status) == al.Status.CONVERGED
+        expected = _dense_kkt_solution(a=float(targets[i]), start=float(starts[i]))
+        assert np.abs(np.concatenate([np.asarray(single.Z).reshape(-1), single.theta]) - expected).max() <= 1e-7
+
+
+def test_infeasible_problem_reports_stalled_with_finite_numbers():
+    """x⁺ = x + 0.1 v + …, v fixed at 0 and the last position pinned far away: infeasible."""
+    nlp = _integrator(u_max=0.0)
+    nlp = StagewiseNLP(**{**nlp.__dict__, "z_lower": nlp.z_lower.at[-1, 0].set(50.0), "z_upper": nlp.z_upper.at[-1, 0].set(50.0),
+                          "theta_lower": jnp.zeros(1), "theta_upper": jnp.zeros(1)})
+    solution = solve(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options=al.Options(max_iterations=300))
+    assert al.Status(int(solution.status)) in (al.Status.STALLED, al.Status.MAX_ITERATIONS)
+    assert al.Status(int(solution.status)) is not al.Status.CONVERGED
+    assert np.all(np.isfinite(np.asarray(solution.Z))) and np.isfinite(float(solution.violation))
+    assert float(solution.violation) > 1.0
