@@ -8,7 +8,9 @@ seeded random configurations (uniform base position in ±2 m, uniform unit quate
 uniform within their limits).
 
 What is measured (wall clock; per configuration = median over --repeats runs of a whole batch
-of --batch configurations, divided by the batch size; one untimed warm-up run first):
+of --batch configurations, divided by the batch size; one untimed warm-up run first). The runs
+of jaxmm and Pinocchio are interleaved (one run of each in turn), so that their ratios are
+measured under the same machine load:
 
 * jaxmm, ``jax.jit`` of one configuration per call (a Python loop over the batch, blocking on
   each result), and ``jax.jit(jax.vmap(...))`` over the batch in one call. Compile time is
@@ -39,11 +41,9 @@ import os
 os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
 
 import argparse  # noqa: E402
-import importlib.metadata  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import pathlib  # noqa: E402
-import platform  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
@@ -57,6 +57,7 @@ import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
+from machine import machine_lines  # noqa: E402
 
 FRAMES = (
     "l_sole_1", "l_sole_2", "l_sole_3", "l_sole_4",
@@ -79,13 +80,13 @@ CPP_SOURCE = r"""
 #include <pinocchio/algorithm/center-of-mass.hpp>
 #include <pinocchio/algorithm/centroidal.hpp>
 #include <pinocchio/algorithm/frames.hpp>
-#include <algorithm>
 #include <chrono>
 #include <fstream>
 #include <iostream>
 #include <vector>
 
-// argv: model.bin configurations.f64 repeats frame_id... ; prints seconds per configuration.
+// argv: model.bin configurations.f64 frame_id... ; prints the seconds of one pass over all
+// configurations, after an untimed warm-up pass.
 int main(int argc, char ** argv) {
   pinocchio::Model model;
   model.loadFromBinary(argv[1]);
@@ -98,13 +99,12 @@ int main(int argc, char ** argv) {
   std::vector<Eigen::VectorXd> configurations;
   for (std::size_t i = 0; i < count; ++i)
     configurations.push_back(Eigen::Map<const Eigen::VectorXd>(values.data() + i * model.nq, model.nq));
-  const int repeats = std::atoi(argv[3]);
   std::vector<pinocchio::FrameIndex> frames;
-  for (int i = 4; i < argc; ++i) frames.push_back(std::atoi(argv[i]));
+  for (int i = 3; i < argc; ++i) frames.push_back(std::atoi(argv[i]));
 
   double sink = 0.0;  // keeps the results observable
-  std::vector<double> times;
-  for (int r = 0; r <= repeats; ++r) {  // run 0 is the warm-up
+  std::chrono::duration<double> elapsed;
+  for (int pass = 0; pass < 2; ++pass) {
     const auto start = std::chrono::steady_clock::now();
     for (const auto & q : configurations) {
       pinocchio::computeCentroidalMap(model, data, q);
@@ -112,11 +112,9 @@ int main(int argc, char ** argv) {
       for (const auto frame : frames) sink += pinocchio::updateFramePlacement(model, data, frame).translation()[0];
       sink += data.Ag(0, 0) + data.com[0][0];
     }
-    const std::chrono::duration<double> elapsed = std::chrono::steady_clock::now() - start;
-    if (r > 0) times.push_back(elapsed.count() / count);
+    elapsed = std::chrono::steady_clock::now() - start;
   }
-  std::sort(times.begin(), times.end());
-  std::cout << times[times.size() / 2] << " " << sink << std::endl;
+  std::cout << elapsed.count() << " " << sink << std::endl;
 }
 """
 CPP_DEFINES = (  # from Pinocchio's exported CMake targets
@@ -132,15 +130,32 @@ def log(message):
     print(message, file=sys.stderr, flush=True)
 
 
-def median_seconds(run, repeats):
-    """Median wall time of run() over repeats calls, after one untimed warm-up call."""
-    run()
-    times = []
-    for _ in range(repeats):
+def timed(run):
+    """A measurement: calls run() and returns its wall time [s]."""
+
+    def measure():
         start = time.perf_counter()
         run()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        return time.perf_counter() - start
+
+    return measure
+
+
+def interleaved_medians(measures, repeats):
+    """{name: median seconds} of each measurement, after one untimed warm-up of each; the
+    repeats take turns (a, b, a, b, ...) so that all see the same machine load."""
+    for measure in measures.values():
+        measure()
+    times = {name: [] for name in measures}
+    for _ in range(repeats):
+        for name, measure in measures.items():
+            times[name].append(measure())
+    return {name: statistics.median(values) for name, values in times.items()}
+
+
+def median_seconds(run, repeats):
+    """Median wall time of run() over repeats calls, after one untimed warm-up call."""
+    return interleaved_medians({"run": timed(run)}, repeats)["run"]
 
 
 def cpu_per_wall_second(run, repeats):
@@ -169,20 +184,6 @@ def random_configurations(model, count, seed):
     return np.concatenate([rng.uniform(-2, 2, (count, 3)), quaternions, joints], axis=1)
 
 
-def machine_lines():
-    cpu = next(
-        (line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
-        platform.processor(),
-    )
-    version = importlib.metadata.version
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    return [
-        f"machine: {cpu}, {os.cpu_count()} cores, load average {load} (1, 5, 15 min) at start",
-        f"versions: python {platform.python_version()}, jax {jax.__version__}, jaxlib {version('jaxlib')}, "
-        f"numpy {np.__version__}, pinocchio {pin.__version__}, adam-robotics {version('adam-robotics')}",
-    ]
-
-
 # ---------------------------------------------------------------------------------------- jaxmm
 
 
@@ -191,26 +192,21 @@ def jaxmm_bundle(model, q):
     return jaxmm.centroidal_momentum_matrix(model, q), jaxmm.com_position(model, q), positions, rotations
 
 
-def time_jaxmm(model, Q, repeats):
-    """Rows for jit (one configuration per call) and jit(vmap), and the batched outputs."""
+def compile_jaxmm(model, Q):
+    """({row key: compile seconds}, {row key: batch run}, batched outputs) for jit with one
+    configuration per call (a loop over the batch) and jit(vmap) over the batch."""
     single = lambda q: jaxmm_bundle(model, q)  # noqa: E731  (the model is a constant, as in use)
-    batched = jax.vmap(single)
     Q_device = jnp.asarray(Q)
     configurations = list(Q_device)
-
+    single_key, batch_key = ("jaxmm", "jit, 1 config/call"), ("jaxmm", f"jit(vmap), batch {len(Q)}")
     single_compile, single_compiled = compile_seconds(single, configurations[0])
-    single_run = median_seconds(
-        lambda: [jax.block_until_ready(single_compiled(q)) for q in configurations], repeats
-    )
-    batch_compile, batch_compiled = compile_seconds(batched, Q_device)
-    batch_run = median_seconds(lambda: jax.block_until_ready(batch_compiled(Q_device)), repeats)
-    cores_used = cpu_per_wall_second(lambda: jax.block_until_ready(batch_compiled(Q_device)), repeats)
+    batch_compile, batch_compiled = compile_seconds(jax.vmap(single), Q_device)
+    runs = {
+        single_key: lambda: [jax.block_until_ready(single_compiled(q)) for q in configurations],
+        batch_key: lambda: jax.block_until_ready(batch_compiled(Q_device)),
+    }
     outputs = [np.asarray(x) for x in batch_compiled(Q_device)]
-    rows = [
-        ("jaxmm", "jit, 1 config/call", single_compile, single_run / len(Q)),
-        ("jaxmm", f"jit(vmap), batch {len(Q)}", batch_compile, batch_run / len(Q)),
-    ]
-    return rows, outputs, cores_used
+    return {single_key: single_compile, batch_key: batch_compile}, runs, outputs
 
 
 # ------------------------------------------------------------------------------------ Pinocchio
@@ -256,12 +252,6 @@ class PinocchioRobot:
         return np.concatenate([cmm[:, :3] @ R.T, cmm[:, 3:6] @ R.T, cmm[:, self.v_index]], axis=1)
 
 
-def time_pinocchio_python(robot, Q_pin, repeats):
-    configurations = list(Q_pin)
-    seconds = median_seconds(lambda: [robot.bundle(q) for q in configurations], repeats)
-    return seconds / len(Q_pin)
-
-
 def check_agreement(robot, Q_pin, jaxmm_outputs):
     """Largest |jaxmm − Pinocchio| over all configurations for CMM, CoM and frame poses."""
     cmm, com, positions, rotations = jaxmm_outputs
@@ -277,8 +267,9 @@ def check_agreement(robot, Q_pin, jaxmm_outputs):
     return worst
 
 
-def time_pinocchio_cpp(robot, Q_pin, repeats, directory):
-    """(seconds per configuration, None) from a compiled C++ loop, or (None, why it was skipped)."""
+def build_pinocchio_cpp(robot, Q_pin, directory):
+    """(measurement, None) where the measurement runs the compiled C++ loop over the batch and
+    returns its seconds, or (None, why it is skipped)."""
     compiler = shutil.which("c++") or shutil.which("g++")
     prefix = next((p for p in pathlib.Path(pin.__file__).parents if (p / "include" / "pinocchio").is_dir()), None)
     eigen_candidates = ([prefix / "include" / "eigen3"] if prefix else []) + [
@@ -301,11 +292,8 @@ def time_pinocchio_cpp(robot, Q_pin, repeats, directory):
     if built.returncode != 0:
         return None, "compilation failed: " + (built.stderr.strip().splitlines() or ["?"])[-1]
     frames = [str(frame) for frame in robot.frame_ids]
-    output = subprocess.run(
-        [str(binary), str(directory / "model.bin"), str(directory / "configurations.f64"), str(repeats), *frames],
-        capture_output=True, text=True, check=True,
-    )  # fmt: skip
-    return float(output.stdout.split()[0]), None
+    run = [str(binary), str(directory / "model.bin"), str(directory / "configurations.f64"), *frames]
+    return lambda: float(subprocess.run(run, capture_output=True, text=True, check=True).stdout.split()[0]), None
 
 
 # ----------------------------------------------------------------------------------------- ADAM
@@ -515,27 +503,36 @@ def main():
 
     logging.getLogger("yourdfpy").setLevel(logging.ERROR)  # unresolved mesh files are irrelevant
     started = time.perf_counter()
-    header = machine_lines()
+    header = machine_lines(("jax", "jaxlib", "numpy", "pin", "adam-robotics"))
     robot = jaxmm.load_ironcub()
     urdf_xml = jaxmm.assemble_urdf(jaxmm.robots.ironcub_description()).write_xml_string()
     Q = random_configurations(robot.model, args.batch, SEED)
 
-    log("jaxmm...")
-    rows, jaxmm_outputs, cores_used = time_jaxmm(robot.model, Q, args.repeats)
-    reference, vmap_compile = rows[1][3], rows[1][2]
-
-    log("Pinocchio...")
+    log("jaxmm (compiling)...")
+    compile_times, runs, jaxmm_outputs = compile_jaxmm(robot.model, Q)
+    measures = {key: timed(run) for key, run in runs.items()}
     pinocchio = PinocchioRobot(robot.model, urdf_xml)
     Q_pin = pinocchio.configurations(Q)
     agreement = check_agreement(pinocchio, Q_pin, jaxmm_outputs)
-    rows.append(("Pinocchio", "Python loop", None, time_pinocchio_python(pinocchio, Q_pin, args.repeats)))
+    configurations = list(Q_pin)
+    measures["Pinocchio", "Python loop"] = timed(lambda: [pinocchio.bundle(q) for q in configurations])
     with tempfile.TemporaryDirectory(prefix="jaxmm-benchmark-") as scratch:
         directory = pathlib.Path(scratch)
         log("Pinocchio C++ (compiling)...")
-        cpp, cpp_skipped = time_pinocchio_cpp(pinocchio, Q_pin, args.repeats, directory)
-        rows.append(("Pinocchio", "C++ loop", None, cpp if cpp is not None else f"skipped: {cpp_skipped}"))
+        cpp_measure, cpp_skipped = build_pinocchio_cpp(pinocchio, Q_pin, directory)
+        if cpp_measure is not None:
+            measures["Pinocchio", "C++ loop"] = cpp_measure
+        log("jaxmm and Pinocchio, interleaved...")
+        medians = interleaved_medians(measures, args.repeats)
+        batch_key = ("jaxmm", f"jit(vmap), batch {args.batch}")
+        cores_used = cpu_per_wall_second(runs[batch_key], args.repeats)
         adam = time_adam(robot, Q, urdf_xml, args, directory)
+    rows = [(*key, compile_times.get(key), seconds / args.batch) for key, seconds in medians.items()]
+    if cpp_measure is None:
+        rows.append(("Pinocchio", "C++ loop", None, f"skipped: {cpp_skipped}"))
     rows += adam_rows(adam, args.budget)
+    reference, vmap_compile = medians[batch_key] / args.batch, compile_times[batch_key]
+    cpp = medians["Pinocchio", "C++ loop"] / args.batch if cpp_measure is not None else None
     adam_check = adam_agreement(adam, jaxmm_outputs)
 
     print("\n".join(header))

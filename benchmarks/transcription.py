@@ -36,9 +36,7 @@ import os
 os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
 
 import argparse  # noqa: E402
-import importlib.metadata  # noqa: E402
 import logging  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -50,6 +48,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
+from machine import machine_lines  # noqa: E402
 from jaxmm import tasks  # noqa: E402
 from jaxmm.reference import ReferenceNLP  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
@@ -74,20 +73,6 @@ def median_seconds(run, repeats):
         run()
         times.append(time.perf_counter() - start)
     return statistics.median(times)
-
-
-def machine_lines():
-    cpu = next(
-        (line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
-        platform.processor(),
-    )
-    version = importlib.metadata.version
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    return [
-        f"machine: {cpu}, {os.cpu_count()} cores, load average {load} (1, 5, 15 min) at start",
-        f"versions: python {platform.python_version()}, jax {jax.__version__}, jaxlib {version('jaxlib')}, "
-        f"numpy {np.__version__}, casadi {cs.__version__}, adam-robotics {version('adam-robotics')}",
-    ]
 
 
 # ------------------------------------------------------------------------------------------ JAX
@@ -321,7 +306,7 @@ def main():
 
     logging.getLogger("yourdfpy").setLevel(logging.ERROR)  # unresolved mesh files are irrelevant
     started = time.perf_counter()
-    header = machine_lines()
+    header = machine_lines(("jax", "jaxlib", "numpy", "casadi", "adam-robotics"))
     task = tasks.scenario("take_off", knots=args.knots)
     nlp = transcription.stagewise_nlp(task)
     Z, theta = transcription.to_variables(task, tasks.initial_guess(task))

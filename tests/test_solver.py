@@ -3,7 +3,6 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import augmented_lagrangian as al

@@ -148,7 +148,6 @@ def _newton_system(nlp, Z, theta, y, penalty, cost_scale):
     B = stagewise.blocks(nlp, Z, theta)
     _, terms = _terms(nlp, Z, theta, y, penalty)
     K, nz = Z.shape
-    ng = theta.shape[0]
     grad_z = cost_scale * B.cost_z
     grad_t = cost_scale * B.cost_theta
     D = cost_scale * B.cost_zz
@@ -186,7 +185,6 @@ def _newton_system(nlp, Z, theta, y, penalty, cost_scale):
     transition(
         "transition_inequality", B.transition_inequality_z, B.transition_inequality_znext, B.transition_inequality_theta
     )
-    del ng
     return (grad_z, grad_t), (D, L, Bd, C)
 
 
@@ -276,9 +274,8 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
             held = ((w <= lo + eps) & (g > 0)) | ((w >= hi - eps) & (g < 0)) | (lo == hi)
             return (~held).astype(w.dtype)
 
-        fz, ft = free(state.Z, gz, *(b[0] for b in (lower, upper))), free(state.theta, gt, lower[1], upper[1])
+        fz, ft = free(state.Z, gz, lower[0], upper[0]), free(state.theta, gt, lower[1], upper[1])
         delta = state.regularisation
-        nz, ng = D.shape[-1], C.shape[-1]
         D_free = fz[:, :, None] * D * fz[:, None, :] + jax.vmap(jnp.diag)(1.0 - fz + delta * fz)
         L_free = fz[1:, :, None] * L * fz[:-1, None, :]
         B_free = fz[:, :, None] * Bd * ft[None, None, :]
