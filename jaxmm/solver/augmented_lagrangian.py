@@ -188,6 +188,9 @@ def _newton_system(nlp, Z, theta, y, penalty, cost_scale):
     return (grad_z, grad_t), (D, L, Bd, C)
 
 
+HISTORY_COLUMNS = ("merit", "violation", "stationarity", "penalty", "step_length", "regularisation")
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class State:
@@ -207,14 +210,16 @@ class State:
     status: jax.Array
     violation: jax.Array
     stationarity: jax.Array
-    history: jax.Array  # (max_iterations, 4): merit, violation, stationarity, penalty
+    history: jax.Array  # (max_iterations, 6): see ``HISTORY_COLUMNS``
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Solution:
     """Result of a solve: the optimum (scaled NLP variables), multipliers, why it stopped, and
-    statistics. ``status`` is a ``Status`` code; ``history`` rows past ``iterations`` are NaN."""
+    statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 6) has one row per
+    inner iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected); rows
+    past ``inner_iterations`` are NaN."""
 
     Z: jax.Array
     theta: jax.Array
@@ -251,7 +256,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         outer=jnp.asarray(0), inner=jnp.asarray(0), inner_this_outer=jnp.asarray(0),
         iterations=jnp.asarray(0), status=jnp.asarray(int(Status.RUNNING)),
         violation=v0, stationarity=jnp.asarray(jnp.inf, Z0.dtype),
-        history=jnp.full((options.max_iterations, 4), jnp.nan, Z0.dtype),
+        history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, Z0.dtype),
     )
 
     lower = (nlp.z_lower, nlp.theta_lower)
@@ -312,7 +317,9 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
             good, jnp.maximum(delta / jnp.where(alpha == 1.0, 10.0, 1.0), 1e-12), delta * 100.0
         )
         v, _ = violation(nlp, Z, theta)
-        record = jnp.stack([jnp.where(good, value, base), v, stationarity, rho])
+        record = jnp.stack(
+            [jnp.where(good, value, base), v, stationarity, rho, jnp.where(good, alpha, 0.0), delta]
+        )
         return dataclasses.replace(
             state, Z=Z, theta=theta, regularisation=jnp.minimum(regularisation, 1e12),
             inner=state.inner + 1, inner_this_outer=state.inner_this_outer + 1,
