@@ -193,3 +193,20 @@ def test_ipopt_solves_take_off(take_off_solution):
     assert lower.total_time - tolerance <= trajectory.total_time <= upper.total_time + tolerance
     total = float(_cost_terms(task, trajectory)["total"])
     assert abs(total - info["objective"]) <= 1e-9 * abs(info["objective"])
+
+
+def test_validate_the_ipopt_solution(take_off_solution):
+    """At N = 10 IPOPT meets every constraint, but the jets cannot spin up in ≤ 1 s: the CoM
+    reaches 0.80 m by pushing with feet that are off the ground, paid for by complementarity
+    slack. ``validate`` must see both facts."""
+    from jaxmm import analysis
+
+    task, trajectory, _ = take_off_solution
+    report = analysis.validate(task, trajectory)
+    constraint_checks = [c for c in report.checks if c.name.startswith("constraint ")]
+    assert constraint_checks and all(c.passed for c in constraint_checks), str(report)
+    assert "re-simulated CoM" not in report.failed, str(report)
+    # Thrust reachable in 1 s (≈ 60 N) is far below the weight, and a CoM at 0.80 m needs the
+    # feet off the ground: some airborne corner must push. This is not a take-off.
+    assert "no force on corners off the ground" in report.failed, str(report)
+    assert report.flight_knots, str(report)

@@ -1,0 +1,139 @@
+"""Is a trajectory a solution? ``validate`` checks it against the physics, not the solver.
+
+Every constraint family and box within tolerance, the CoM at its targets, no force on a corner
+that is off the ground, thrust and throttle in range, and a re-simulation of the centroidal
+dynamics (eq. 13, 24) from the forces and thrusts alone that must reproduce the CoM trajectory.
+"""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmm.centroidal import total_mass
+from jaxmm.kinematics import frame_poses
+from jaxmm.physics.jets import thrust_forces
+from jaxmm.transcription import constraints
+
+
+@dataclasses.dataclass(frozen=True)
+class Check:
+    """One test of a trajectory: the measured value against its limit (value ≤ limit passes)."""
+
+    name: str
+    value: float
+    limit: float
+    detail: str = ""
+
+    @property
+    def passed(self):
+        return bool(np.isfinite(self.value) and self.value <= self.limit)
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidationReport:
+    """The checks of ``validate`` and what was measured on the way."""
+
+    checks: tuple
+    flight_knots: tuple  # knots at which every contact corner is off the ground
+    resimulated_com: np.ndarray  # (N + 1, 3) [m]
+
+    @property
+    def ok(self):
+        return all(check.passed for check in self.checks)
+
+    @property
+    def failed(self):
+        return tuple(check.name for check in self.checks if not check.passed)
+
+    def __str__(self):
+        width = max(len(check.name) for check in self.checks)
+        lines = [f"{'check':<{width}}  {'value':>10}  {'limit':>10}  result"]
+        for check in self.checks:
+            verdict = "ok" if check.passed else "FAILED"
+            detail = f"  ({check.detail})" if check.detail else ""
+            lines.append(f"{check.name:<{width}}  {check.value:>10.3g}  {check.limit:>10.3g}  {verdict}{detail}")
+        lines.append(f"flight knots: {list(self.flight_knots) or 'none'}")
+        return "\n".join(lines)
+
+
+def _outside(value, lower, upper):
+    return np.maximum(np.maximum(np.asarray(lower) - value, value - np.asarray(upper)), 0.0)
+
+
+def resimulate_com(task, trajectory):
+    """CoM trajectory re-integrated from the contact forces and thrusts alone (eq. 13, 24).
+
+    The CoM acceleration at each knot is (Σ f_i + Σ F_j)/m + g, with F_j = −T_j R_j e_z at the
+    knot's configuration; it is integrated from x[0], ẋ[0] with the task's rule (backward Euler
+    for ẋ; trapezoidal or backward Euler for x). Returns (N + 1, 3) [m].
+    """
+    knots = trajectory.knots
+    robot = task.robot
+    mass = float(total_mass(robot.model))
+    poses = jax.jit(jax.vmap(functools.partial(frame_poses, robot.model, frames=robot.jet_frames)))
+    _, jet_rotations = poses(knots.configuration)
+    jet_forces = jax.vmap(thrust_forces)(knots.thrust, jet_rotations)
+    force = np.asarray(jnp.sum(knots.contact_forces, axis=1) + jnp.sum(jet_forces, axis=1))
+    acceleration = force / mass + np.asarray(task.params.gravity)
+    dt = float(trajectory.total_time) / task.n_intervals
+    x = [np.asarray(knots.com[0])]
+    v = np.asarray(knots.com_velocity[0])
+    for k in range(task.n_intervals):
+        v_next = v + dt * acceleration[k + 1]
+        step = 0.5 * (v + v_next) if task.integration == "trapezoidal" else v_next
+        x.append(x[-1] + dt * step)
+        v = v_next
+    return np.stack(x)
+
+
+def validate(task, trajectory, *, tolerance=1e-4, contact_height=0.01, flight_force=1.0, resimulation_tolerance=0.01):
+    """Check a trajectory against the task's physics; returns a ``ValidationReport``.
+
+    tolerance: on every constraint family, box, target and range (physical units, as IPOPT's
+    constraint-violation tolerance of the paper); contact_height [m]: a corner higher than
+    this is off the ground, and then its vertical force must be ≤ flight_force [N];
+    resimulation_tolerance [m]: on the re-simulated CoM.
+    """
+    checks = []
+    values = jax.jit(constraints.evaluate)(task, trajectory)
+    bounds = constraints.inequality_bounds(task)
+    for name, value in values.items():
+        value = np.asarray(value)
+        violation = np.abs(value) if name not in bounds else _outside(value, *bounds[name])
+        checks.append(Check(f"constraint {name}", float(violation.max(initial=0.0)), tolerance))
+    lower, upper = constraints.variable_bounds(task)
+    layout = task.layout
+    box = _outside(np.asarray(layout.flatten(trajectory.knots)), layout.flatten(lower.knots), layout.flatten(upper.knots))
+    worst = np.unravel_index(np.argmax(box), box.shape) if box.size else (0, 0)
+    field = next((n for n, s in layout.slices().items() if s.start <= worst[1] < s.stop), "")
+    checks.append(Check("variable boxes", float(box.max(initial=0.0)), tolerance, f"worst: {field} at knot {worst[0]}"))
+    time_violation = _outside(float(trajectory.total_time), lower.total_time, upper.total_time)
+    checks.append(Check("total time bounds", float(time_violation), tolerance))
+
+    knots, params = trajectory.knots, task.params
+    com = np.asarray(knots.com)
+    checks.append(Check("initial CoM at target", float(np.abs(com[0] - params.initial_com).max()), tolerance))
+    checks.append(Check("final CoM at target", float(np.abs(com[-1] - params.final_com).max()), tolerance))
+    if np.isfinite(float(params.mid_com_height)):
+        middle = task.n_intervals // 2
+        checks.append(Check("mid-horizon CoM height", float(max(params.mid_com_height - com[middle, 2], 0.0)), tolerance))
+
+    heights = np.asarray(knots.contact_points[..., 2])
+    vertical = np.asarray(knots.contact_forces[..., 2])
+    airborne = heights > contact_height
+    force_in_air = float(np.where(airborne, np.abs(vertical), 0.0).max(initial=0.0))
+    checks.append(Check("no force on corners off the ground", force_in_air, flight_force,
+                        f"corners above {contact_height} m; max slack ε_n {float(np.max(knots.normal_slack, initial=0.0)):.3g}"))
+    if layout.n_jets:
+        thrust = np.asarray(knots.thrust)
+        throttle = np.asarray(knots.throttle)
+        checks.append(Check("thrust within [0, T_max]", float(_outside(thrust, 0.0, params.max_thrust).max()), tolerance))
+        checks.append(Check("throttle within range", float(_outside(throttle, *params.throttle_range).max()), tolerance))
+
+    resimulated = resimulate_com(task, trajectory)
+    checks.append(Check("re-simulated CoM", float(np.abs(resimulated - com).max()), resimulation_tolerance, "metres"))
+    flight = tuple(int(k) for k in np.flatnonzero(airborne.all(axis=1)))
+    return ValidationReport(checks=tuple(checks), flight_knots=flight, resimulated_com=resimulated)

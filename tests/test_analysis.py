@@ -1,0 +1,94 @@
+"""``validate`` passes a physically exact trajectory and names what is wrong with bad ones."""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmm
+from jaxmm import analysis, tasks
+from jaxmm.transcription.variables import Trajectory
+
+
+def _standing_still(knots=6):
+    """iRonCub standing still with idle jets: an exact solution of its own task.
+
+    Contact forces: the minimum-norm set with Σ f = −m g and Σ (c − x) × f = 0; throttle: the
+    idle value where the jet model (eq. 8) gives T̈ = 0 at T = Ṫ = 0.
+    """
+    robot = jaxmm.load_ironcub()
+    q = robot.standing_configuration
+    com = np.asarray(jaxmm.com_position(robot.model, q))
+    task = tasks.scenario("take_off", knots=knots, initial_com=com, final_com=com, final_orientation_tolerance=0.02)
+    corners = np.asarray(jaxmm.frame_poses(robot.model, q, robot.contact_frames)[0])
+    mass = float(jaxmm.total_mass(robot.model))
+    # 6 equations in the 24 force components.
+    A = np.zeros((6, 24))
+    for i, c in enumerate(corners):
+        A[:3, 3 * i : 3 * i + 3] = np.eye(3)
+        A[3:, 3 * i : 3 * i + 3] = np.asarray(jaxmm.so3.skew(c - com))
+    b = np.concatenate([-mass * np.asarray(task.params.gravity), np.zeros(3)])
+    forces = np.linalg.lstsq(A, b, rcond=None)[0].reshape(8, 3)
+    idle = []
+    for k_t, k_tt, k_d, k_dd, k_td, b_u, b_t, b_d, b_uu, c in np.asarray(task.params.jet_coefficients):
+        roots = np.roots([b_u * b_uu, b_u, c])
+        idle.append(min(r.real for r in roots if abs(r.imag) < 1e-12 and 0 <= r.real <= 100))
+    n_knots = task.n_knots
+    zeros = task.layout.unflatten(jnp.zeros((n_knots, task.layout.size)))
+    repeat = lambda x: jnp.broadcast_to(jnp.asarray(x), (n_knots,) + np.shape(x))  # noqa: E731
+    knots = dataclasses.replace(
+        zeros,
+        com=repeat(com),
+        base_position=repeat(q[:3]),
+        base_quaternion=repeat(q[3:7]),
+        joint_positions=repeat(q[7:]),
+        contact_forces=repeat(forces),
+        contact_points=repeat(corners),
+        throttle=repeat(np.array(idle)),
+    )
+    return task, Trajectory(knots, jnp.asarray(task.n_intervals * 0.1))
+
+
+def test_an_exact_standing_trajectory_passes():
+    task, trajectory = _standing_still()
+    report = analysis.validate(task, trajectory)
+    assert report.ok, str(report)
+    assert report.flight_knots == ()
+    assert np.abs(report.resimulated_com - np.asarray(trajectory.knots.com)).max() < 1e-9
+    assert np.all(np.asarray(trajectory.knots.contact_forces[..., 2]) > 0)  # a genuine stance
+
+
+def test_the_initial_guess_fails_where_it_should():
+    task = tasks.scenario("take_off", knots=10)
+    report = analysis.validate(task, tasks.initial_guess(task))
+    assert not report.ok
+    for name in ("constraint centroidal_dynamics", "constraint com", "constraint jet_dynamics", "re-simulated CoM"):
+        assert name in report.failed, str(report)
+    assert "constraint contact_points" not in report.failed
+    assert "FAILED" in str(report)
+
+
+def test_a_pushing_foot_in_the_air_is_caught():
+    task, trajectory = _standing_still()
+    lifted = trajectory.knots.contact_points.at[3, 0, 2].set(0.05)
+    report = analysis.validate(task, Trajectory(dataclasses.replace(trajectory.knots, contact_points=lifted), trajectory.total_time))
+    assert "no force on corners off the ground" in report.failed
+    assert "constraint contact_points" in report.failed
+    assert "constraint normal_complementarity" in report.failed
+
+
+def test_unbalanced_forces_fail_the_resimulation():
+    task, trajectory = _standing_still()
+    weaker = trajectory.knots.contact_forces * 0.9
+    report = analysis.validate(task, Trajectory(dataclasses.replace(trajectory.knots, contact_forces=weaker), trajectory.total_time))
+    assert "re-simulated CoM" in report.failed
+    assert "constraint centroidal_dynamics" in report.failed
+    assert report.resimulated_com[-1, 2] < trajectory.knots.com[-1, 2] - 0.01  # it falls
+
+
+@pytest.mark.parametrize("contact_height", [0.01, 0.05])
+def test_thresholds_are_options(contact_height):
+    task, trajectory = _standing_still()
+    report = analysis.validate(task, trajectory, contact_height=contact_height, resimulation_tolerance=1e-6)
+    assert report.ok, str(report)
