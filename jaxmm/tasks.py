@@ -248,15 +248,3 @@ def initial_guess(task):
         thrust=jnp.full((n_knots, layout.n_jets), 30.0),
     )
     return Trajectory(knots=knots, total_time=jnp.asarray(task.n_intervals * task.params.max_dt))
-
-
-def describe_scenarios():
-    """{name: one-line description with knots and targets}."""
-    return {
-        name: f"N={spec['knots']}, x0={spec['initial_com']}, xN={spec['final_com']}"
-        + (f", mid z ≥ {spec['mid_com_height']}" if "mid_com_height" in spec else "")
-        + f": {spec['description']}"
-        for name, spec in SCENARIOS.items()
-    }
-
-
