@@ -38,6 +38,8 @@ _cost_terms = jax.jit(costs.cost_terms)
 @pytest.fixture(scope="module")
 def robot():
     """iRonCub from the shared URDF, with the default robot's joints, frames and stance."""
+    # The real iRonCub URDF lives in ../shared (CI has it); it is not part of the project, so
+    # without it these checks cannot run and say so, instead of passing silently.
     if not IRONCUB_URDF.is_file():
         pytest.skip(f"the shared iRonCub URDF is absent ({IRONCUB_URDF})")
     default = jaxmm.load_ironcub()
