@@ -137,6 +137,23 @@ def centroidal_kinematics(model, q, frames):
     return _fast_bundle(model, q, model.frame_indices(frames))
 
 
+def centroidal_kinematics_curvature(model, q, frames, weights):
+    """Σ_a w_a ∇²_q κ_a(q): the second derivative of the weighted ``centroidal_kinematics``
+    outputs κ (weights: a pytree of the same shapes) w.r.t. q, (7 + n, 7 + n).
+
+    Forward-over-reverse through the plain kinematics (n_q tangents); the chain-rule term a
+    transcription needs for its exact Lagrangian Hessian.
+    """
+    q = check_configuration(model, q)
+    indices = model.frame_indices(frames)
+
+    def weighted(q):
+        out = _bundle(model, q, indices)
+        return sum(jnp.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out)))
+
+    return jax.hessian(weighted)(q)
+
+
 def com_jacobian(model, q):
     """Jacobian of the CoM for the mixed velocity, ẋ = J_com ν: (7 + n,) → (3, 6 + n)."""
     return centroidal_momentum_matrix(model, q)[:3] / total_mass(model)

@@ -59,3 +59,12 @@ def test_vmap_over_systems():
     for i, (A, *_rest) in enumerate(systems):
         expected = np.linalg.solve(A, np.ones(25))
         assert np.allclose(np.concatenate([np.asarray(x[i]).reshape(-1), y[i]]), expected, atol=1e-9)
+
+
+def test_matvec_matches_dense():
+    A, D, L, B, C = _random_system(6, 4, 2, seed=3)
+    rng = np.random.default_rng(1)
+    x, y = rng.normal(size=(6, 4)), rng.normal(size=2)
+    top, bottom = linalg.matvec(D, L, B, C, x, y)
+    expected = A @ np.concatenate([x.reshape(-1), y])
+    assert np.abs(np.concatenate([np.asarray(top).reshape(-1), bottom]) - expected).max() <= 1e-12

@@ -130,3 +130,76 @@ def test_infeasible_problem_reports_stalled_with_finite_numbers():
     assert al.Status(int(solution.status)) is not al.Status.CONVERGED
     assert np.all(np.isfinite(np.asarray(solution.Z))) and np.isfinite(float(solution.violation))
     assert float(solution.violation) > 1.0
+
+
+# Per-knot Rosenbrock (1 − x)² + 100 (y − x²)², with a different box on x at each knot.
+def _rosenbrock(a, z, theta, d):
+    return (1 - z[0]) ** 2 + 100 * (z[1] - z[0] ** 2) ** 2 + 0.0 * d
+
+
+def _theta_cost(a, theta):
+    return 0.5 * jnp.sum(theta**2)
+
+
+def _product(a, z, theta):
+    return z[:1] * z[1:2]  # complementarity x y ≤ 0 with x, y ≥ 0
+
+
+ROSENBROCK = StagewiseFunctions(_rosenbrock, _theta_cost, _no_path, _no_transition, _no_path, _no_transition)
+
+
+def _unconstrained(functions, lower, upper, path_bounds=(EMPTY, EMPTY)):
+    return StagewiseNLP(
+        args=jnp.zeros(()), knot_data=jnp.zeros(lower.shape[0]), z_lower=lower, z_upper=upper,
+        theta_lower=jnp.full(1, -jnp.inf), theta_upper=jnp.full(1, jnp.inf),
+        path_lower=path_bounds[0], path_upper=path_bounds[1], transition_lower=EMPTY, transition_upper=EMPTY,
+        functions=functions,
+    )
+
+
+def test_bound_constrained_rosenbrock():
+    """x ≤ 0.5 → (0.5, 0.25); free → (1, 1); x ≥ 1.5 → (1.5, 2.25): from (−1.2, 1) at every knot."""
+    lower = jnp.array([[-jnp.inf, -jnp.inf], [-jnp.inf, -jnp.inf], [1.5, -jnp.inf]])
+    upper = jnp.array([[0.5, jnp.inf], [jnp.inf, jnp.inf], [jnp.inf, jnp.inf]])
+    Z0 = jnp.tile(jnp.array([-1.2, 1.0]), (3, 1))
+    solution = solve(_unconstrained(ROSENBROCK, lower, upper), Z0, jnp.ones(1), options=OPTIONS)
+    assert al.Status(int(solution.status)) is al.Status.CONVERGED
+    expected = np.array([[0.5, 0.25], [1.0, 1.0], [1.5, 2.25]])
+    assert np.abs(np.asarray(solution.Z) - expected).max() <= 1e-6
+    assert abs(float(solution.theta[0])) <= 1e-8
+
+
+def test_complementarity_problem():
+    """min (x − 1)² + (y − 1)² s.t. x, y ≥ 0, x y ≤ 0 (degenerate, as the contact constraints
+    are): from (1, 0.5) the solver ends at the vertex (1, 0) with objective 1."""
+
+    def cost(a, z, theta, d):
+        return (z[0] - 1) ** 2 + (z[1] - 1) ** 2 + 0.0 * d
+
+    functions = StagewiseFunctions(cost, _theta_cost, _no_path, _no_transition, _product, _no_transition)
+    nlp = _unconstrained(
+        functions, jnp.zeros((2, 2)), jnp.full((2, 2), jnp.inf), (jnp.array([-jnp.inf]), jnp.zeros(1))
+    )
+    Z0 = jnp.array([[1.0, 0.5], [0.4, 1.0]])
+    solution = solve(nlp, Z0, jnp.zeros(1), options=al.Options(tolerance=1e-8, stationarity=1e-6))
+    assert al.Status(int(solution.status)) is al.Status.CONVERGED, al.Status(int(solution.status)).message
+    Z = np.asarray(solution.Z)
+    assert np.abs(Z - np.array([[1.0, 0.0], [0.0, 1.0]])).max() <= 1e-3
+    assert float(solution.violation) <= 1e-8
+    assert abs(float(solution.objective) - 2.0) <= 1e-3
+
+
+def test_infeasible_take_off_reports_stalled_with_finite_numbers():
+    """The final CoM 5 m up with every jet capped at 1 N cannot be reached: the penalty climbs
+    to its cap, the status says stalled, and every returned number is finite."""
+    from jaxmm.optimise import solve_task
+    from jaxmm.tasks import scenario
+
+    task = scenario("take_off", knots=4, final_com=(0.0, 0.0, 5.57), max_thrust=(1.0, 1.0, 1.0, 1.0))
+    options = al.Options(max_inner=5, penalty_growth=100.0, penalty_max=1e8, max_iterations=60)
+    result = solve_task(task, options=options)
+    assert result.status is al.Status.STALLED, result.status.message
+    assert float(result.solution.violation) > 1.0
+    leaves = jax.tree.leaves((result.trajectory, result.solution.Z, result.solution.multipliers))
+    assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
+    assert np.isfinite(float(result.solution.objective))

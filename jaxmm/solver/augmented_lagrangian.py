@@ -1,28 +1,29 @@
 """An augmented-Lagrangian solver for stage-wise NLPs (``jaxmm.transcription.stagewise``).
 
-Outer loop: Powell–Hestenes–Rockafellar augmented Lagrangian with the multiplier and penalty
-schedule of LANCELOT (Conn, Gould, Toint): when the constraint violation meets the current
-feasibility tolerance the multipliers are updated and both tolerances tighten; otherwise the
-penalty grows and the multipliers are kept. Inequalities enter through the projection form
-ρ/2 ‖g + μ/ρ − Π_[l,u](g + μ/ρ)‖²; variable boxes are kept exactly (as LANCELOT does): every
-iterate lies in the box.
+Outer loop: Powell–Hestenes–Rockafellar augmented Lagrangian with safeguarded first-order
+multiplier updates after every inner solve and a penalty that grows only when the violation
+failed to shrink by ``penalty_trigger`` (ALGENCAN; Birgin & Martínez). Inequalities enter
+through the projection form ρ/2 ‖g + μ/ρ − Π_[l,u](g + μ/ρ)‖²; variable boxes are kept exactly:
+every iterate lies in the box.
 
-Inner loop: projected Newton on the augmented Lagrangian over the box (Bertsekas' projected
-Newton): exact cost Hessian blocks, the constraints' curvature weighted by the multiplier
-estimates, and ρ JᵀJ of the active rows, with the variables
-held at a bound removed from the step, Levenberg–Marquardt regularisation and an Armijo search
-along the projection arc. Each Newton system is bordered block-tridiagonal and is solved by
-``linalg`` (block Cholesky in ``lax.scan`` plus a Schur complement for the globals). The whole
-solve is one ``lax.while_loop``: it can be jitted and vmapped.
+Inner loop: Newton on the augmented Lagrangian over the box. The model uses the exact cost
+Hessian blocks, ρ JᵀJ of the active rows and (option ``curvature``) the constraints' curvature
+Σ λᵢ ∇²cᵢ at the first-order multiplier estimates; inertia is corrected by growing a
+Levenberg–Marquardt δ until the block Cholesky succeeds. The step solves the model's
+box-constrained QP (``box_qp``: projected Newton iterations that find the active set), then an
+Armijo search on the augmented Lagrangian. Every linear system is bordered block-tridiagonal and
+is solved by ``linalg`` (block Cholesky in ``lax.scan`` plus a Schur complement for the
+globals). The whole solve is one ``lax.while_loop``: it can be jitted and vmapped.
 """
 
 import dataclasses
 import enum
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 
-from jaxmm.solver import linalg
+from jaxmm.solver import box_qp, linalg
 from jaxmm.transcription import stagewise
 
 
@@ -51,12 +52,18 @@ class Options:
     """Solver settings (static).
 
     tolerance: primal feasibility (max violation, in the NLP's scaled units);
-    stationarity: ∞-norm of the AL gradient relative to max(1, ‖∇f(w₀)‖∞);
+    stationarity: ∞-norm of the projected gradient of the AL, whose cost is divided by
+    max(1, ‖∇f(w₀)‖∞);
     max_outer, max_inner: iteration limits; max_iterations: total inner iterations;
-    penalty0, penalty_growth, penalty_max: PHR penalty schedule; regularisation0: initial LM δ;
+    penalty0, penalty_growth, penalty_max: PHR penalty schedule; penalty_trigger: the penalty
+    grows when violation > penalty_trigger × the previous outer iteration's; multiplier_max:
+    safeguard on |y|; inner_tolerance0, inner_tightening: stationarity asked of the first inner
+    solve and its factor per outer iteration; regularisation0, regularisation_max: LM δ;
+    line_search_steps: Armijo halvings; qp_iterations: projected-Newton iterations of the box QP;
     curvature: add the constraints' curvature Σ yᵢ ∇²cᵢ (exact Hessian of the augmented
-    Lagrangian up to the active-set kinks) to the Gauss–Newton matrix; on take-off N = 10 it
-    turns 1/100 steps into full steps.
+    Lagrangian up to the active-set kinks) to the Gauss–Newton matrix;
+    progress: called on the host after every inner iteration as progress(iteration, outer,
+    record) with record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
     """
 
     tolerance: float = 1e-6
@@ -67,9 +74,16 @@ class Options:
     penalty0: float = 10.0
     penalty_growth: float = 10.0
     penalty_max: float = 1e10
+    penalty_trigger: float = 0.5
+    multiplier_max: float = 1e12
+    inner_tolerance0: float = 1e-1
+    inner_tightening: float = 0.1
     regularisation0: float = 1e-8
+    regularisation_max: float = 1e12
     line_search_steps: int = 30
+    qp_iterations: int = 8
     curvature: bool = True
+    progress: Callable | None = None
 
 
 @jax.tree_util.register_dataclass
@@ -149,8 +163,9 @@ def violation(nlp, Z, theta):
 
 
 def _newton_system(nlp, Z, theta, y, penalty, cost_scale, curvature=False):
-    """Gradient and Hessian blocks of the augmented Lagrangian (Gauss–Newton, plus the
-    constraints' curvature when ``curvature``)."""
+    """Gradient and Hessian blocks of the augmented Lagrangian: Gauss–Newton, plus (when
+    ``curvature``) the constraints' curvature Σ λᵢ ∇²cᵢ weighted by the first-order multiplier
+    estimates λ = y + ρc (projected for inequalities): the exact Hessian up to the kinks."""
     B = stagewise.blocks(nlp, Z, theta)
     _, terms = _terms(nlp, Z, theta, y, penalty)
     K, nz = Z.shape
@@ -186,36 +201,8 @@ def _newton_system(nlp, Z, theta, y, penalty, cost_scale, curvature=False):
         C += jnp.einsum("kmg,km,kmh->gh", Jt, w, Jt)
 
     if curvature:
-        f, a = nlp.functions, nlp.args
-        nz_, ng_ = Z.shape[1], theta.shape[0]
-
-        def path_curvature(function, weights):
-            def weighted(w, y_k):
-                return jnp.sum(function(a, w[:nz_], w[nz_:]) * y_k)
-
-            return jax.vmap(jax.hessian(weighted))(jnp.concatenate([Z, jnp.broadcast_to(theta, (Z.shape[0], ng_))], 1), weights)
-
-        def transition_curvature(function, weights):
-            def weighted(w, y_k):
-                return jnp.sum(function(a, w[:nz_], w[nz_ : 2 * nz_], w[2 * nz_ :]) * y_k)
-
-            stacked = jnp.concatenate([Z[:-1], Z[1:], jnp.broadcast_to(theta, (Z.shape[0] - 1, ng_))], 1)
-            return jax.vmap(jax.hessian(weighted))(stacked, weights)
-
-        for group, function in (("path_equality", f.path_equality), ("path_inequality", f.path_inequality)):
-            H = path_curvature(function, terms[group][1])
-            D += H[:, :nz_, :nz_]
-            Bd += H[:, :nz_, nz_:]
-            C += jnp.sum(H[:, nz_:, nz_:], axis=0)
-        for group, function in (
-            ("transition_equality", f.transition_equality),
-            ("transition_inequality", f.transition_inequality),
-        ):
-            H = transition_curvature(function, terms[group][1])
-            D = D.at[:-1].add(H[:, :nz_, :nz_]).at[1:].add(H[:, nz_ : 2 * nz_, nz_ : 2 * nz_])
-            L += H[:, nz_ : 2 * nz_, :nz_]
-            Bd = Bd.at[:-1].add(H[:, :nz_, 2 * nz_ :]).at[1:].add(H[:, nz_ : 2 * nz_, 2 * nz_ :])
-            C += jnp.sum(H[:, 2 * nz_ :, 2 * nz_ :], axis=0)
+        Dc, Lc, Bc, Cc = stagewise.constraint_curvature(nlp, Z, theta, **{g: terms[g][1] for g in terms})
+        D, L, Bd, C = D + Dc, L + Lc, Bd + Bc, C + Cc
 
     path("path_equality", B.path_equality_z, B.path_equality_theta)
     path("path_inequality", B.path_inequality_z, B.path_inequality_theta)
@@ -238,7 +225,7 @@ class State:
     theta: jax.Array
     multipliers: Multipliers
     penalty: jax.Array
-    feasibility_tolerance: jax.Array
+    previous_violation: jax.Array
     inner_tolerance: jax.Array
     regularisation: jax.Array
     outer: jax.Array
@@ -288,8 +275,8 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
     v0, _ = violation(nlp, Z0, theta0)
     state = State(
         Z=Z0, theta=theta0, multipliers=y0, penalty=penalty0,
-        feasibility_tolerance=jnp.asarray(0.1, Z0.dtype) / penalty0**0.1,
-        inner_tolerance=1.0 / penalty0,
+        previous_violation=jnp.asarray(jnp.inf, Z0.dtype),
+        inner_tolerance=jnp.asarray(options.inner_tolerance0, Z0.dtype),
         regularisation=jnp.asarray(options.regularisation0, Z0.dtype),
         outer=jnp.asarray(0), inner=jnp.asarray(0), inner_this_outer=jnp.asarray(0),
         iterations=jnp.asarray(0), status=jnp.asarray(int(Status.RUNNING)),
@@ -310,24 +297,42 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         pz, pt = project(state.Z - gz, state.theta - gt)
         pz, pt = pz - state.Z, pt - state.theta
         stationarity = jnp.maximum(jnp.max(jnp.abs(pz)), jnp.max(jnp.abs(pt)))
-        # ε-active bounds (Bertsekas): at a bound with the gradient pushing outwards, or fixed.
-        eps = jnp.minimum(1e-3, stationarity)
+        # Inertia correction without re-assembling: grow δ until H + δI is positive definite
+        # (fixed variables, lo = hi, are left out).
+        fz = (lower[0] != upper[0]).astype(gz.dtype)
+        ft = (lower[1] != upper[1]).astype(gt.dtype)
 
-        def free(w, g, lo, hi):
-            held = ((w <= lo + eps) & (g > 0)) | ((w >= hi - eps) & (g < 0)) | (lo == hi)
-            return (~held).astype(w.dtype)
+        def regularised(delta):
+            return (
+                D + jax.vmap(jnp.diag)(delta * fz + 1.0 - fz), L, Bd,
+                C + jnp.diag(delta * ft + 1.0 - ft),
+            )
 
-        fz, ft = free(state.Z, gz, lower[0], upper[0]), free(state.theta, gt, lower[1], upper[1])
+        def masked(hessian):
+            D_, L_, B_, C_ = hessian
+            return (
+                fz[:, :, None] * D_ * fz[:, None, :] + jax.vmap(jnp.diag)(1.0 - fz),
+                fz[1:, :, None] * L_ * fz[:-1, None, :],
+                fz[:, :, None] * B_ * ft[None, None, :],
+                ft[:, None] * C_ * ft[None, :] + jnp.diag(1.0 - ft),
+            )
+
+        def indefinite(carry):
+            delta, ok = carry
+            return (~ok) & (delta < options.regularisation_max)
+
+        def stiffen(carry):
+            delta, _ = carry
+            delta = jnp.maximum(delta * 10.0, 1e-8)
+            return delta, linalg.factor(*masked(regularised(delta))).ok
+
         delta = state.regularisation
-        D_free = fz[:, :, None] * D * fz[:, None, :] + jax.vmap(jnp.diag)(1.0 - fz + delta * fz)
-        L_free = fz[1:, :, None] * L * fz[:-1, None, :]
-        B_free = fz[:, :, None] * Bd * ft[None, None, :]
-        C_free = ft[:, None] * C * ft[None, :] + jnp.diag(1.0 - ft + delta * ft)
-        chol = linalg.factor(D_free, L_free, B_free, C_free)
-        dz, dt = linalg.solve(chol, -gz * fz, -gt * ft)
-        # Held variables follow the projected gradient instead of staying put.
-        dz = dz * fz + (1.0 - fz) * pz
-        dt = dt * ft + (1.0 - ft) * pt
+        delta, _ = jax.lax.while_loop(indefinite, stiffen, (delta, linalg.factor(*masked(regularised(delta))).ok))
+        # The Newton step: the box-constrained QP of the model, its active set found by the QP.
+        (dz, dt), qp_ok = box_qp.solve(
+            regularised(delta), (gz, gt), (lower[0] - state.Z, lower[1] - state.theta),
+            (upper[0] - state.Z, upper[1] - state.theta), options.qp_iterations,
+        )
         base = merit(nlp, state.Z, state.theta, y, rho, cost_scale)
 
         def try_step(alpha):
@@ -346,7 +351,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
             return (~(sufficient & jnp.isfinite(value))) & (count < options.line_search_steps)
 
         alpha, value, _, count = jax.lax.while_loop(keep_searching, search, (1.0, *try_step(1.0), 0))
-        good = chol.ok & jnp.isfinite(value) & (count < options.line_search_steps)
+        good = qp_ok & jnp.isfinite(value) & (count < options.line_search_steps)
         Z_new, theta_new = project(state.Z + alpha * dz, state.theta + alpha * dt)
         Z = jnp.where(good, Z_new, state.Z)
         theta = jnp.where(good, theta_new, state.theta)
@@ -354,37 +359,36 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         regularisation = jnp.where(
             good, jnp.maximum(delta / jnp.where(alpha == 1.0, 10.0, 1.0), 1e-12), delta * 100.0
         )
+        regularisation = jnp.minimum(regularisation, options.regularisation_max)
         v, _ = violation(nlp, Z, theta)
         record = jnp.stack(
             [jnp.where(good, value, base), v, stationarity, rho, jnp.where(good, alpha, 0.0), delta]
         )
+        if options.progress is not None:
+            jax.debug.callback(options.progress, state.iterations, state.outer, record)
         return dataclasses.replace(
-            state, Z=Z, theta=theta, regularisation=jnp.minimum(regularisation, 1e12),
+            state, Z=Z, theta=theta, regularisation=regularisation,
             inner=state.inner + 1, inner_this_outer=state.inner_this_outer + 1,
             iterations=state.iterations + 1, violation=v, stationarity=stationarity,
             history=state.history.at[state.iterations].set(record),
         ), good, stationarity
 
     def outer_update(state):
-        """Multiplier update or penalty increase (LANCELOT), then convergence tests."""
+        """First-order multiplier update, safeguarded (ALGENCAN); the penalty grows only when
+        the violation failed to shrink by ``penalty_trigger`` since the last outer iteration."""
         rho = state.penalty
         _, terms = _terms(nlp, state.Z, state.theta, state.multipliers, rho)
-        v, _ = violation(nlp, state.Z, state.theta)
-        updated = Multipliers(**{group: terms[group][1] for group in terms})
-        feasible_enough = v <= state.feasibility_tolerance
-        multipliers = jax.tree.map(lambda new, old: jnp.where(feasible_enough, new, old), updated, state.multipliers)
-        new_rho = jnp.where(feasible_enough, rho, jnp.minimum(rho * options.penalty_growth, options.penalty_max))
-        feas_tol = jnp.where(
-            feasible_enough, state.feasibility_tolerance / new_rho**0.9, 0.1 / new_rho**0.1
-        )
-        inner_tol = jnp.where(feasible_enough, state.inner_tolerance / new_rho, 1.0 / new_rho)
+        v = state.violation
+        bound = options.multiplier_max
+        multipliers = Multipliers(**{group: jnp.clip(terms[group][1], -bound, bound) for group in terms})
+        failed = (v > options.penalty_trigger * state.previous_violation) & (v > options.tolerance)
+        new_rho = jnp.where(failed, jnp.minimum(rho * options.penalty_growth, options.penalty_max), rho)
         converged = (v <= options.tolerance) & (state.stationarity <= options.stationarity)
-        stalled = (~feasible_enough) & (rho >= options.penalty_max)
+        stalled = failed & (rho >= options.penalty_max)
         status = jnp.where(converged, int(Status.CONVERGED), jnp.where(stalled, int(Status.STALLED), state.status))
         return dataclasses.replace(
-            state, multipliers=multipliers, penalty=new_rho,
-            feasibility_tolerance=jnp.maximum(feas_tol, options.tolerance),
-            inner_tolerance=jnp.maximum(inner_tol, options.stationarity),
+            state, multipliers=multipliers, penalty=new_rho, previous_violation=v,
+            inner_tolerance=jnp.maximum(state.inner_tolerance * options.inner_tightening, options.stationarity),
             outer=state.outer + 1, inner_this_outer=jnp.asarray(0), status=status,
         )
 
@@ -400,7 +404,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         inner_done = (
             (new_state.stationarity <= new_state.inner_tolerance)
             | (new_state.inner_this_outer >= options.max_inner)
-            | ((~good) & (new_state.regularisation >= 1e12))
+            | ((~good) & (new_state.regularisation >= options.regularisation_max))
         )
         return jax.lax.cond(
             inner_done & (new_state.status == int(Status.RUNNING)), outer_update, lambda s: s, new_state

@@ -92,3 +92,11 @@ def solve(chol, r, s):
     rhs = s - jnp.einsum("knm,kn->m", chol.border, x0)
     y = jax.scipy.linalg.cho_solve((chol.schur, True), rhs)
     return x0 - jnp.einsum("knm,m->kn", chol.border_solution, y), y
+
+
+def matvec(D, L, B, C, x, y):
+    """Product of the bordered block-tridiagonal symmetric matrix with (x (K, n), y (m,))."""
+    top = jnp.einsum("kab,kb->ka", D, x) + jnp.einsum("kab,b->ka", B, y)
+    top = top.at[1:].add(jnp.einsum("kab,kb->ka", L, x[:-1]))
+    top = top.at[:-1].add(jnp.einsum("kba,kb->ka", L, x[1:]))
+    return top, jnp.einsum("kab,ka->b", B, x) + C @ y

@@ -22,12 +22,16 @@ PATH_INEQUALITIES = ("friction_cone", "normal_complementarity", "corner_com", "j
 TRANSITION_INEQUALITIES = ("planar_complementarity",)
 
 
-def _kinematics(task, knot):
-    """Frame poses of contacts and jets, CoM and CMM at the knot's configuration."""
+def knot_kinematics(task, configuration):
+    """CoM, CMM and the poses of the contact corners and jets at q (``centroidal_kinematics``)."""
     robot = task.robot
-    model = robot.model
-    kin = centroidal_kinematics(model, knot.configuration, robot.contact_frames + robot.jet_frames)
-    nc = len(robot.contact_frames)
+    return centroidal_kinematics(robot.model, configuration, robot.contact_frames + robot.jet_frames)
+
+
+def _kinematics(task, knot, kinematics):
+    """Named kinematic quantities of the knot; ``kinematics`` (from ``knot_kinematics``) if given."""
+    kin = knot_kinematics(task, knot.configuration) if kinematics is None else kinematics
+    nc = len(task.robot.contact_frames)
     return dict(
         corner_positions=kin["frame_positions"][:nc],
         jet_positions=kin["frame_positions"][nc:],
@@ -37,11 +41,14 @@ def _kinematics(task, knot):
     )
 
 
-def path_equalities(task, knot, total_time):
-    """Equalities at one knot (eq. 8, 14-17, 23): {family: (rows,)}, zero when satisfied."""
+def path_equalities(task, knot, total_time, kinematics=None):
+    """Equalities at one knot (eq. 8, 14-17, 23): {family: (rows,)}, zero when satisfied.
+
+    kinematics: ``knot_kinematics`` of the knot, if already known (or linearised).
+    """
     del total_time
     params = task.params
-    kin = _kinematics(task, knot)
+    kin = _kinematics(task, knot, kinematics)
     mass = total_mass(task.robot.model)
     jet_forces = thrust_forces(knot.thrust, kin["jet_rotations"])
     rate = momentum_rate(
@@ -86,10 +93,10 @@ def transition_equalities(task, knot, next_knot, total_time):
     )
 
 
-def path_inequalities(task, knot, total_time):
+def path_inequalities(task, knot, total_time, kinematics=None):
     """Inequalities at one knot (eq. 12, 19, 20, boxes of eq. 29): {family: (rows,)}."""
     del total_time
-    kin = _kinematics(task, knot)
+    kin = _kinematics(task, knot, kinematics)
     return dict(
         friction_cone=friction_cone(knot.contact_forces, task.params.friction_coefficient),
         normal_complementarity=normal_complementarity(knot.contact_forces, knot.contact_points, knot.normal_slack),

@@ -4,9 +4,11 @@ The functions below are module-level, so the ``StagewiseFunctions`` they form is
 static object: every task of the same structure reuses the same compiled code.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxmm.centroidal import centroidal_kinematics_curvature
 from jaxmm.transcription import constraints, costs
 from jaxmm.transcription.stagewise import StagewiseFunctions, StagewiseNLP
 from jaxmm.transcription.variables import Trajectory
@@ -42,6 +44,43 @@ def _path_inequality(task, z, theta):
     return _concat(constraints.path_inequalities(task, _knot(task, z), theta[0]), constraints.PATH_INEQUALITIES)
 
 
+def _path_hessian(task, z, theta, y_equality, y_inequality):
+    """Hessian of y_e·e + y_g·g w.r.t. (z̃, θ), exact, by the chain rule through the kinematics κ(q):
+    ``jax.hessian`` of the constraints with κ linearised at q (cheap algebra), plus Σ w ∇²κ with
+    w = ∂(y·c)/∂κ, where only q's n_q tangents traverse the kinematics (``jax.hessian`` of the whole
+    knot would push all nz + ng of them through it)."""
+    nz = z.shape[0]
+    robot = task.robot
+
+    def configuration(z):
+        return _knot(task, z).configuration
+
+    def weighted(w, kinematics):
+        knot, total_time = _knot(task, w[:nz]), w[nz]
+        equalities = constraints.path_equalities(task, knot, total_time, kinematics)
+        inequalities = constraints.path_inequalities(task, knot, total_time, kinematics)
+        return jnp.dot(y_equality, _concat(equalities, constraints.PATH_EQUALITIES)) + jnp.dot(
+            y_inequality, _concat(inequalities, constraints.PATH_INEQUALITIES)
+        )
+
+    q0 = configuration(z)
+    kin0 = constraints.knot_kinematics(task, q0)
+    jacobian = jax.jacfwd(constraints.knot_kinematics, argnums=1)(task, q0)
+
+    def linearised(w):
+        dq = configuration(w[:nz]) - q0
+        return weighted(w, jax.tree.map(lambda k, J: k + J @ dq, kin0, jacobian))
+
+    w0 = jnp.concatenate([z, theta])
+    hessian = jax.hessian(linearised)(w0)
+    weights = jax.grad(weighted, argnums=1)(w0, kin0)
+    curvature = centroidal_kinematics_curvature(
+        robot.model, q0, robot.contact_frames + robot.jet_frames, weights
+    )
+    selection = jax.jacfwd(configuration)(z)  # q is linear in z̃
+    return hessian.at[:nz, :nz].add(selection.T @ curvature @ selection)
+
+
 def _transition_inequality(task, z, z_next, theta):
     values = constraints.transition_inequalities(task, _knot(task, z), _knot(task, z_next), theta[0])
     return _concat(values, constraints.TRANSITION_INEQUALITIES)
@@ -54,6 +93,7 @@ FUNCTIONS = StagewiseFunctions(
     transition_equality=_transition_equality,
     path_inequality=_path_inequality,
     transition_inequality=_transition_inequality,
+    path_hessian=_path_hessian,
 )
 
 

@@ -27,6 +27,8 @@ class StagewiseFunctions:
     knot_cost(args, z, θ, d) → (); global_cost(args, θ) → (); path_equality(args, z, θ) → (me,);
     transition_equality(args, z, z_next, θ) → (mt,); path_inequality(args, z, θ) → (mg,);
     transition_inequality(args, z, z_next, θ) → (mh,).
+    path_hessian (optional): (args, z, θ, y_e (me,), y_g (mg,)) → (nz + ng, nz + ng), the Hessian
+    of y_e·e + y_g·g w.r.t. (z, θ), for NLPs that know a faster way than ``jax.hessian``.
     """
 
     knot_cost: Callable
@@ -35,6 +37,7 @@ class StagewiseFunctions:
     transition_equality: Callable
     path_inequality: Callable
     transition_inequality: Callable
+    path_hessian: Callable | None = None
 
 
 @jax.tree_util.register_dataclass
@@ -166,3 +169,40 @@ def blocks(nlp, Z, theta):
         transition_inequality_znext=ti_znext,
         transition_inequality_theta=ti_theta,
     )
+
+
+def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path_inequality, transition_inequality):
+    """Blocks of Σ yᵢ ∇²cᵢ for the given multipliers (shaped like ``Residuals``' constraints).
+
+    Returns (D (K, nz, nz) diagonal blocks, L (K − 1, nz, nz) sub-diagonal blocks ∂²/∂z_{k+1}∂z_k,
+    B (K, nz, ng) knot–global blocks, C (ng, ng)).
+    """
+    f, a = nlp.functions, nlp.args
+    K, nz = Z.shape
+
+    def path_hessian(args, z, theta, y_e, y_g):
+        def weighted(w):
+            return jnp.sum(f.path_equality(args, w[:nz], w[nz:]) * y_e) + jnp.sum(
+                f.path_inequality(args, w[:nz], w[nz:]) * y_g
+            )
+
+        return jax.hessian(weighted)(jnp.concatenate([z, theta]))
+
+    def transition_hessian(z, z_next, y_t, y_h):
+        def weighted(w):
+            now, nxt, th = w[:nz], w[nz : 2 * nz], w[2 * nz :]
+            return jnp.sum(f.transition_equality(a, now, nxt, th) * y_t) + jnp.sum(
+                f.transition_inequality(a, now, nxt, th) * y_h
+            )
+
+        return jax.hessian(weighted)(jnp.concatenate([z, z_next, theta]))
+
+    hessian = path_hessian if f.path_hessian is None else f.path_hessian
+    H = jax.vmap(hessian, in_axes=(None, 0, None, 0, 0))(a, Z, theta, path_equality, path_inequality)
+    D, B, C = H[:, :nz, :nz], H[:, :nz, nz:], jnp.sum(H[:, nz:, nz:], axis=0)
+    H = jax.vmap(transition_hessian)(Z[:-1], Z[1:], transition_equality, transition_inequality)
+    D = D.at[:-1].add(H[:, :nz, :nz]).at[1:].add(H[:, nz : 2 * nz, nz : 2 * nz])
+    L = H[:, nz : 2 * nz, :nz]
+    B = B.at[:-1].add(H[:, :nz, 2 * nz :]).at[1:].add(H[:, nz : 2 * nz, 2 * nz :])
+    C = C + jnp.sum(H[:, 2 * nz :, 2 * nz :], axis=0)
+    return D, L, B, C

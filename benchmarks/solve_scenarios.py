@@ -1,0 +1,307 @@
+"""Solve the four published scenarios with the JAX augmented-Lagrangian solver
+(``jaxmm.optimise.solve_task``) from the published initial guess, and optionally with the IPOPT
+reference (``jaxmm.reference.solve_ipopt``) from the same guess, in the same run.
+
+Each scenario is ``tasks.scenario(name)`` on the default assembled iRonCub, at its published N
+(take-off 70, take-off and landing 200, walk to fly 100, jumping 60) unless --knots-override is
+given, started from ``tasks.initial_guess``.
+
+What is measured (wall clock):
+
+* ours: compile time = ``jaxmm.optimise._solve.lower(task, guess, options, None).compile()``
+  (tracing, lowering and XLA compilation of the whole solve, one ``lax.while_loop``); solve time
+  = median over --repeats calls of the compiled executable (``jax.block_until_ready``); it is
+  compiled ahead of time, so there is no warm-up call. Also: the problem size (variables =
+  (N + 1) knots × knot size + T_total; equality and inequality rows from the shapes of
+  ``stagewise.residuals``, each inequality row two-sided with its own bounds, variable boxes
+  not counted), the outer and inner (Newton) iterations, the status, and
+  ``jaxmm.analysis.validate`` of the trajectory (its table is printed after the main table).
+  The default solver tolerance is 1e-6 on the scaled violation (``optimise.DEFAULT_OPTIONS``).
+* --ipopt: ``solve_ipopt(task, urdf, guess, tol=1e-4)`` (the paper's tolerance, physical units;
+  exact Hessian, MUMPS) on the same robot, read from ``jaxmm.assemble_urdf`` written to a
+  temporary file; one call (no repeats): build time (``ReferenceNLP`` construction, ADAM
+  kinematics), setup time (the ``nlpsol`` construction), IPOPT's own wall time, iterations and
+  status, and the speed-ups IPOPT solve / our solve, IPOPT solve / (our compile + solve) and
+  (IPOPT build + setup + solve) / (our compile + solve). WARNING: IPOPT is slow: take-off at
+  N = 70 takes about 10 minutes on the 2-core benchmark machine, the longer scenarios more.
+* For both sides, the objective and the max constraint violation of the returned trajectory are
+  evaluated by the same jitted JAX function: ``stagewise.residuals(nlp, Z, θ).cost`` and
+  ``augmented_lagrangian.violation(nlp, Z, θ)[0]`` (scaled units: every constraint group and
+  the variable boxes) after ``transcription.to_variables(task, trajectory)``.
+* --knots: time per inner iteration against N on take-off (default N = 60, 100, 200, 400): each N
+  compiled (compile time reported) and solved with a budget of 10 inner iterations (or
+  --max-iterations); (solve time / inner iterations) and that divided by N, which is constant if
+  the cost of an iteration grows linearly with N. The per-iteration time includes the
+  once-per-solve setup (first cost gradient, initial violation) and varies with the number of
+  line-search trials. Given alone, --knots skips the scenario table; add --scenarios for both.
+
+--max-iterations caps the inner iterations of our solver (``Options.max_iterations``) and
+IPOPT's ``max_iter``, for quick runs.
+
+Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
+       [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M]
+"""
+
+import os
+
+os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import logging  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+
+import jax  # noqa: E402
+
+import jaxmm  # noqa: E402  (enables float64)
+from machine import machine_lines  # noqa: E402
+from jaxmm import analysis, optimise, tasks  # noqa: E402
+from jaxmm.solver import augmented_lagrangian as al  # noqa: E402
+from jaxmm.transcription import nlp as transcription  # noqa: E402
+from jaxmm.transcription import stagewise  # noqa: E402
+
+IPOPT_TOLERANCE = 1e-4  # the paper's IPOPT tol and constr_viol_tol (physical units)
+KNOT_SCENARIO = "take_off"
+KNOT_COUNTS = (60, 100, 200, 400)
+KNOT_BUDGET = 10  # inner iterations per solve of the --knots study
+
+
+def log(message):
+    print(message, file=sys.stderr, flush=True)
+
+
+def timed(run):
+    """(result, wall seconds) of run()."""
+    start = time.perf_counter()
+    result = run()
+    return result, time.perf_counter() - start
+
+
+# ------------------------------------------------------------------------------------------ ours
+
+
+def sizes(task, guess):
+    """(variables, equality rows, inequality rows) of the task's stage-wise NLP."""
+    nlp = transcription.stagewise_nlp(task)
+    Z, theta = transcription.to_variables(task, guess)
+    shapes = jax.eval_shape(stagewise.residuals, nlp, Z, theta)
+    equalities = shapes.path_equality.size + shapes.transition_equality.size
+    inequalities = shapes.path_inequality.size + shapes.transition_inequality.size
+    return task.n_knots * task.layout.size + 1, equalities, inequalities
+
+
+@jax.jit
+def measure(task, trajectory):
+    """(objective, max violation in scaled units) of a trajectory, whoever computed it."""
+    nlp = transcription.stagewise_nlp(task)
+    Z, theta = transcription.to_variables(task, trajectory)
+    return stagewise.residuals(nlp, Z, theta).cost, al.violation(nlp, Z, theta)[0]
+
+
+def solve_ours(task, guess, options, repeats):
+    """(compile seconds, median solve seconds, TaskSolution) of the compiled solve."""
+    compiled, compile_time = timed(lambda: optimise._solve.lower(task, guess, options, None).compile())
+    times, result = [], None
+    for _ in range(repeats):
+        result, seconds = timed(lambda: jax.block_until_ready(compiled(task, guess, None)))
+        times.append(seconds)
+    return compile_time, statistics.median(times), result
+
+
+# --------------------------------------------------------------------------------------- report
+
+
+def format_time(value):
+    if value is None:
+        return "–"
+    if value < 1e-3:
+        return f"{value * 1e6:.3g} µs"
+    if value < 1:
+        return f"{value * 1e3:.3g} ms"
+    return f"{value:.3g} s"
+
+
+def render(header, rows):
+    """A Markdown table."""
+    lines = [tuple(header)] + [tuple(map(str, row)) for row in rows]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
+    cells = lambda line: "| " + " | ".join(c.ljust(w) for c, w in zip(line, widths)) + " |"  # noqa: E731
+    return "\n".join([cells(lines[0]), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + list(map(cells, lines[1:])))
+
+
+def verdict(report):
+    return "ok" if report.ok else f"FAILED ({len(report.failed)})"
+
+
+def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter):
+    """Everything printed about one scenario, as a dict; IPOPT too if urdf_path is given."""
+    task = tasks.scenario(name, knots=knots)
+    guess = tasks.initial_guess(task)
+    row = dict(name=name, N=task.n_intervals, sizes=sizes(task, guess))
+    log(f"{name} N = {task.n_intervals}: compiling our solve...")
+    compile_time, solve_time, result = solve_ours(task, guess, options, repeats)
+    log(f"{name}: solved in {format_time(solve_time)} (median of {repeats}); validating...")
+    objective, violation = (float(v) for v in measure(task, result.trajectory))
+    row["ours"] = dict(
+        compile=compile_time, solve=solve_time, objective=objective, violation=violation,
+        outer=int(result.solution.outer_iterations), inner=int(result.solution.inner_iterations),
+        status=result.status.message, report=analysis.validate(task, result.trajectory),
+    )  # fmt: skip
+    if urdf_path is not None:
+        from jaxmm.reference import solve_ipopt  # the reference extra (casadi, adam-robotics)
+
+        log(f"{name}: IPOPT (slow: ~10 min at take-off N = 70)...")
+        max_iter = {} if ipopt_max_iter is None else dict(max_iter=ipopt_max_iter)
+        trajectory, info = solve_ipopt(task, urdf_path, guess, tol=IPOPT_TOLERANCE, print_level=0, **max_iter)
+        objective, violation = (float(v) for v in measure(task, trajectory))
+        row["ipopt"] = dict(info, objective_jax=objective, violation_jax=violation, report=analysis.validate(task, trajectory))
+        log(f"{name}: IPOPT {info['status']} in {format_time(info['wall_time'])}")
+    return row
+
+
+def scenario_table(rows):
+    header = ("scenario", "N", "variables", "equalities", "inequalities", "outer it.", "inner it.",
+              "compile", "solve", "objective", "max violation", "status", "validate")  # fmt: skip
+    lines = [
+        (r["name"], r["N"], *r["sizes"], r["ours"]["outer"], r["ours"]["inner"], format_time(r["ours"]["compile"]),
+         format_time(r["ours"]["solve"]), f"{r['ours']['objective']:.6g}", f"{r['ours']['violation']:.2e}",
+         r["ours"]["status"], verdict(r["ours"]["report"]))
+        for r in rows
+    ]  # fmt: skip
+    return render(header, lines)
+
+
+def ipopt_table(rows):
+    header = ("scenario", "N", "IPOPT build", "IPOPT setup", "IPOPT solve", "IPOPT it.", "objective", "max violation",
+              "IPOPT status", "validate", "ours compile", "ours solve", "ours objective", "ours violation",
+              "speed-up solve", "speed-up incl. compile", "speed-up end to end")  # fmt: skip
+    lines = []
+    for r in rows:
+        ours, ipopt = r["ours"], r["ipopt"]
+        ours_total = ours["compile"] + ours["solve"]
+        ipopt_total = ipopt["build_time"] + ipopt["setup_time"] + ipopt["wall_time"]
+        lines.append((
+            r["name"], r["N"], format_time(ipopt["build_time"]), format_time(ipopt["setup_time"]),
+            format_time(ipopt["wall_time"]), ipopt["iterations"], f"{ipopt['objective_jax']:.6g}",
+            f"{ipopt['violation_jax']:.2e}", ipopt["status"], verdict(ipopt["report"]),
+            format_time(ours["compile"]), format_time(ours["solve"]), f"{ours['objective']:.6g}",
+            f"{ours['violation']:.2e}", f"{ipopt['wall_time'] / ours['solve']:.3g}×",
+            f"{ipopt['wall_time'] / ours_total:.3g}×", f"{ipopt_total / ours_total:.3g}×",
+        ))  # fmt: skip
+    return render(header, lines)
+
+
+def failed_lines(rows):
+    lines = []
+    for r in rows:
+        for side in ("ours", "ipopt"):
+            if side in r and not r[side]["report"].ok:
+                lines.append(f"{r['name']} ({side}): failed checks: {', '.join(r[side]['report'].failed)}")
+    return lines
+
+
+def knot_study(counts, budget, repeats):
+    """One table row per N: compile, solve, inner iterations, per iteration, per iteration / N."""
+    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, max_iterations=budget)
+    lines, first = [], None
+    for knots in counts:
+        task = tasks.scenario(KNOT_SCENARIO, knots=knots)
+        guess = tasks.initial_guess(task)
+        log(f"{KNOT_SCENARIO} N = {knots}: compiling (budget {budget} inner iterations)...")
+        compile_time, solve_time, result = solve_ours(task, guess, options, repeats)
+        inner = int(result.solution.inner_iterations)
+        per_iteration = solve_time / max(inner, 1)
+        first = first or (knots, per_iteration)
+        lines.append((
+            knots, sizes(task, guess)[0], format_time(compile_time), format_time(solve_time), inner,
+            format_time(per_iteration), format_time(per_iteration / knots),
+            f"{per_iteration / first[1]:.3g}× (N {knots / first[0]:.3g}×)", result.status.name.lower(),
+        ))  # fmt: skip
+    header = ("N", "variables", "compile", "solve", "inner it.", "per iteration", "per iteration / N",
+              "per iteration vs first row", "status")  # fmt: skip
+    return render(header, lines)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenarios", default=None,
+                        help=f"comma-separated, from {', '.join(tasks.SCENARIOS)} (default: all)")  # fmt: skip
+    parser.add_argument("--knots-override", type=int, default=None, help="N for every scenario instead of the published one")
+    parser.add_argument("--ipopt", action="store_true", help="also solve every scenario with IPOPT (slow)")
+    parser.add_argument("--knots", nargs="?", const=",".join(map(str, KNOT_COUNTS)), default=None,
+                        help=f"time per inner iteration on {KNOT_SCENARIO} for these N (default {KNOT_COUNTS})")  # fmt: skip
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs of our compiled solve (the median is reported)")
+    parser.add_argument("--max-iterations", type=int, default=None, help="inner-iteration limit of both solvers")
+    args = parser.parse_args()
+
+    run_scenarios = args.scenarios is not None or args.knots is None
+    names = list(tasks.SCENARIOS) if args.scenarios is None else [s.strip().replace("-", "_") for s in args.scenarios.split(",") if s.strip()]
+    for name in names:
+        if name not in tasks.SCENARIOS:
+            parser.error(f"unknown scenario {name!r}; scenarios: {', '.join(tasks.SCENARIOS)}")
+    options = optimise.DEFAULT_OPTIONS
+    if args.max_iterations is not None:
+        options = dataclasses.replace(options, max_iterations=args.max_iterations)
+
+    logging.getLogger("yourdfpy").setLevel(logging.ERROR)  # unresolved mesh files are irrelevant
+    started = time.perf_counter()
+    header = machine_lines(("jax", "jaxlib", "numpy") + (("casadi", "adam-robotics") if args.ipopt else ()))
+
+    rows = []
+    if run_scenarios:
+        with tempfile.NamedTemporaryFile(suffix=".urdf") as urdf:
+            if args.ipopt:
+                urdf.write(jaxmm.assemble_urdf(jaxmm.robots.ironcub_description()).write_xml_string())
+                urdf.flush()
+            for name in names:
+                rows.append(run_scenario(
+                    name, args.knots_override, options, args.repeats, urdf.name if args.ipopt else None, args.max_iterations
+                ))
+    knot_table = None
+    if args.knots is not None:
+        counts = [int(n) for n in args.knots.split(",")]
+        knot_table = knot_study(counts, args.max_iterations or KNOT_BUDGET, args.repeats)
+
+    print("\n".join(header))
+    if rows:
+        print(
+            f"Scenarios from the published initial guess, {'N = ' + str(args.knots_override) if args.knots_override else 'published N'}; "
+            f"our solver: tolerance {options.tolerance:g} (scaled violation), stationarity {options.stationarity:g}, "
+            f"max {options.max_iterations} inner iterations; solve = median of {args.repeats} runs of the compiled solve; "
+            "objective and max violation (scaled units) of the returned trajectory by the same JAX function for both sides"
+        )
+        print()
+        print(scenario_table(rows))
+        lines = failed_lines(rows)
+        if any("ipopt" in r for r in rows):
+            print()
+            print(f"IPOPT (MUMPS, exact Hessian, tol {IPOPT_TOLERANCE:g} physical units), one run each; "
+                  "speed-ups: IPOPT solve / ours solve, IPOPT solve / (ours compile + solve), "
+                  "(IPOPT build + setup + solve) / (ours compile + solve)")  # fmt: skip
+            print()
+            print(ipopt_table(rows))
+        if lines:
+            print()
+            print("\n".join(lines))
+        for r in rows:
+            for side, label in (("ours", "ours"), ("ipopt", "IPOPT")):
+                if side in r:
+                    print()
+                    print(f"validate: {r['name']} N = {r['N']}, {label}: {'ok' if r[side]['report'].ok else 'FAILED'}")
+                    print(r[side]["report"])
+    if knot_table is not None:
+        print()
+        print(f"Time per inner iteration on {KNOT_SCENARIO} against N, budget {args.max_iterations or KNOT_BUDGET} "
+              f"inner iterations from the published guess; solve = median of {args.repeats} runs")  # fmt: skip
+        print()
+        print(knot_table)
+    print()
+    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
+    print(f"Total benchmark time {time.perf_counter() - started:.0f} s; load average at the end {load}.")
+
+
+if __name__ == "__main__":
+    main()
