@@ -1,4 +1,5 @@
-"""The header every benchmark prints: the machine, its load, and package versions."""
+"""What every benchmark shares: the header (the machine, its load, package versions) and the
+format of a duration."""
 
 import importlib.metadata
 import os
@@ -18,3 +19,14 @@ def machine_lines(packages):
         f"machine: {cpu}, {os.cpu_count()} cores, load average {load} (1, 5, 15 min) at start",
         f"versions: python {platform.python_version()}, {versions}",
     ]
+
+
+def format_time(value):
+    """A duration [s] in µs, ms or s with three significant digits; "–" for None."""
+    if value is None:
+        return "–"
+    if value < 1e-3:
+        return f"{value * 1e6:.3g} µs"
+    if value < 1:
+        return f"{value * 1e3:.3g} ms"
+    return f"{value:.3g} s"

@@ -57,7 +57,7 @@ import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
-from machine import machine_lines  # noqa: E402
+from machine import format_time, machine_lines  # noqa: E402
 
 FRAMES = (
     "l_sole_1", "l_sole_2", "l_sole_3", "l_sole_4",
@@ -434,18 +434,13 @@ def adam_agreement(results, jaxmm_outputs):
 # --------------------------------------------------------------------------------------- report
 
 
-def format_time(value):
-    if value is None:
-        return "–"
+def format_cell(value):
+    """A duration, or a (prefix, duration) pair, or a string as is."""
     if isinstance(value, str):
         return value
     if isinstance(value, tuple):
         return f"{value[0]} {format_time(value[1])}"
-    if value < 1e-3:
-        return f"{value * 1e6:.3g} µs"
-    if value < 1:
-        return f"{value * 1e3:.3g} ms"
-    return f"{value:.3g} s"
+    return format_time(value)
 
 
 def format_compile(value):
@@ -465,7 +460,7 @@ def speedup(value, reference):
 def table(rows, reference):
     header = ("implementation", "mode", "compile", "per configuration", "jaxmm vmap is … faster")
     lines = [header] + [
-        (name, mode, format_compile(compiled) or "–", format_time(run), speedup(run, reference))
+        (name, mode, format_compile(compiled) or "–", format_cell(run), speedup(run, reference))
         for name, mode, compiled, run in rows
     ]
     widths = [max(len(line[i]) for line in lines) for i in range(len(header))]

@@ -57,7 +57,7 @@ import time  # noqa: E402
 import jax  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
-from machine import machine_lines  # noqa: E402
+from machine import format_time, machine_lines  # noqa: E402
 from jaxmm import analysis, optimise, tasks  # noqa: E402
 from jaxmm.solver import augmented_lagrangian as al  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
@@ -112,16 +112,6 @@ def solve_ours(task, guess, options, repeats):
 
 
 # --------------------------------------------------------------------------------------- report
-
-
-def format_time(value):
-    if value is None:
-        return "–"
-    if value < 1e-3:
-        return f"{value * 1e6:.3g} µs"
-    if value < 1:
-        return f"{value * 1e3:.3g} ms"
-    return f"{value:.3g} s"
 
 
 def render(header, rows):

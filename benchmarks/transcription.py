@@ -48,7 +48,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
-from machine import machine_lines  # noqa: E402
+from machine import format_time, machine_lines  # noqa: E402
 from jaxmm import tasks  # noqa: E402
 from jaxmm.reference import ReferenceNLP  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
@@ -260,16 +260,6 @@ ROWS = (  # label, JAX function, CasADi Function
     ("constraint Jacobian + cost gradient + cost Hessian", "all blocks", "jac_g, grad_f, hess_f"),
     ("Lagrangian Hessian (upper triangle)", None, "hess_l"),
 )
-
-
-def format_time(value):
-    if value is None:
-        return "–"
-    if value < 1e-3:
-        return f"{value * 1e6:.3g} µs"
-    if value < 1:
-        return f"{value * 1e3:.3g} ms"
-    return f"{value:.3g} s"
 
 
 def table(jax_results, casadi_results):
