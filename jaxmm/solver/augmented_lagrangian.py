@@ -1,16 +1,23 @@
 """An augmented-Lagrangian solver for stage-wise NLPs (``jaxmm.transcription.stagewise``).
 
 Outer loop: Powell–Hestenes–Rockafellar augmented Lagrangian with safeguarded first-order
-multiplier updates after every inner solve and a penalty that grows only when the violation
-failed to shrink by ``penalty_trigger`` (ALGENCAN; Birgin & Martínez). Inequalities enter
-through the projection form ρ/2 ‖g + μ/ρ − Π_[l,u](g + μ/ρ)‖²; variable boxes are kept exactly:
-every iterate lies in the box.
+multiplier updates after every inner solve (ALGENCAN; Birgin & Martínez) and one penalty per
+constraint row, each grown only when its own infeasibility–complementarity measure failed to
+shrink by ``penalty_trigger`` (component-wise penalties, Conn, Gould & Toint). Rows of very
+different units (forces in N next to positions in m) thus find their own penalty, and the
+few stubborn rows do not make the whole Hessian stiff. Inequalities enter through the
+projection form ρ/2 ‖g + μ/ρ − Π_[l,u](g + μ/ρ)‖²; variable boxes are kept exactly: every
+iterate lies in the box.
 
 Inner loop: Newton on the augmented Lagrangian over the box. The model uses the exact cost
-Hessian blocks, ρ JᵀJ of the active rows and (option ``curvature``) the constraints' curvature
-Σ λᵢ ∇²cᵢ at the first-order multiplier estimates; inertia is corrected by growing a
-Levenberg–Marquardt δ until the block Cholesky succeeds. The step solves the model's
-box-constrained QP (``box_qp``: projected Newton iterations that find the active set), then an
+Hessian blocks, ρ JᵀJ of the equality rows, the linearised inequality rows as penalised
+piecewise-quadratic terms (their activity decided by the step, not frozen at the current point)
+and (option ``curvature``, once the violation is below
+``curvature_below``) the constraints' curvature Σ λᵢ ∇²cᵢ at the first-order multiplier
+estimates. Far from feasibility that curvature, ρ c ∇²c, is large and indefinite and would force
+huge regularisation, so the first iterations are Gauss–Newton; inertia is corrected by growing a
+Levenberg–Marquardt δ until the block Cholesky succeeds. The step minimises the model
+over the box (``box_qp``: semismooth projected Newton iterations that find the active sets), then an
 Armijo search on the augmented Lagrangian. Every linear system is bordered block-tridiagonal and
 is solved by ``linalg`` (block Cholesky in ``lax.scan`` plus a Schur complement for the
 globals). The whole solve is one ``lax.while_loop``: it can be jitted and vmapped.
@@ -23,7 +30,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxmm.solver import box_qp, linalg
+from jaxmm.solver import box_qp, linalg, rows
 from jaxmm.transcription import stagewise
 
 
@@ -55,13 +62,15 @@ class Options:
     stationarity: ∞-norm of the projected gradient of the AL, whose cost is divided by
     max(1, ‖∇f(w₀)‖∞);
     max_outer, max_inner: iteration limits; max_iterations: total inner iterations;
-    penalty0, penalty_growth, penalty_max: PHR penalty schedule; penalty_trigger: the penalty
-    grows when violation > penalty_trigger × the previous outer iteration's; multiplier_max:
+    penalty0, penalty_growth, penalty_max: PHR penalty schedule, per row; penalty_trigger: a
+    row's penalty grows when its infeasibility (with complementarity for inequalities) is above
+    ``tolerance`` and above penalty_trigger × its value at the previous outer iteration; multiplier_max:
     safeguard on |y|; inner_tolerance0, inner_tightening: stationarity asked of the first inner
     solve and its factor per outer iteration; regularisation0, regularisation_max: LM δ;
     line_search_steps: Armijo halvings; qp_iterations: projected-Newton iterations of the box QP;
     curvature: add the constraints' curvature Σ yᵢ ∇²cᵢ (exact Hessian of the augmented
-    Lagrangian up to the active-set kinks) to the Gauss–Newton matrix;
+    Lagrangian up to the active-set kinks) to the Gauss–Newton matrix once the max violation
+    is below ``curvature_below``;
     progress: called on the host after every inner iteration as progress(iteration, outer,
     record) with record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
     """
@@ -83,6 +92,7 @@ class Options:
     line_search_steps: int = 30
     qp_iterations: int = 8
     curvature: bool = True
+    curvature_below: float = 1e-2
     progress: Callable | None = None
 
 
@@ -97,14 +107,12 @@ class Multipliers:
     transition_inequality: jax.Array
 
 
-def _zeros_like_multipliers(nlp, Z, theta):
+def _full_like_multipliers(nlp, Z, theta, value):
     r = stagewise.residuals(nlp, Z, theta)
-    return Multipliers(
-        path_equality=jnp.zeros_like(r.path_equality),
-        transition_equality=jnp.zeros_like(r.transition_equality),
-        path_inequality=jnp.zeros_like(r.path_inequality),
-        transition_inequality=jnp.zeros_like(r.transition_inequality),
-    )
+    return Multipliers(**{group: jnp.full_like(getattr(r, group), value) for group in GROUPS})
+
+
+GROUPS = ("path_equality", "transition_equality", "path_inequality", "transition_inequality")
 
 
 def _projected(value, multiplier, penalty, lower, upper):
@@ -115,31 +123,29 @@ def _projected(value, multiplier, penalty, lower, upper):
 
 
 def _terms(nlp, Z, theta, y, penalty):
-    """Residuals and AL pieces: per group (value, new multiplier, active mask)."""
+    """Residuals and AL pieces: per group (value, new multiplier, active mask); ``penalty`` is a
+    ``Multipliers``-shaped pytree of per-row penalties."""
     r = stagewise.residuals(nlp, Z, theta)
-    out = dict(
-        path_equality=(r.path_equality, y.path_equality + penalty * r.path_equality, jnp.ones_like(r.path_equality)),
-        transition_equality=(
-            r.transition_equality,
-            y.transition_equality + penalty * r.transition_equality,
-            jnp.ones_like(r.transition_equality),
-        ),
-    )
-    for group, lower, upper, value in (
-        ("path_inequality", nlp.path_lower, nlp.path_upper, r.path_inequality),
-        ("transition_inequality", nlp.transition_lower, nlp.transition_upper, r.transition_inequality),
+    out = {}
+    for group in ("path_equality", "transition_equality"):
+        value = getattr(r, group)
+        out[group] = (value, getattr(y, group) + getattr(penalty, group) * value, jnp.ones_like(value))
+    for group, lower, upper in (
+        ("path_inequality", nlp.path_lower, nlp.path_upper),
+        ("transition_inequality", nlp.transition_lower, nlp.transition_upper),
     ):
-        shifted, projection, estimate = _projected(value, getattr(y, group), penalty, lower, upper)
+        value = getattr(r, group)
+        shifted, projection, estimate = _projected(value, getattr(y, group), getattr(penalty, group), lower, upper)
         out[group] = (value, estimate, (shifted != projection).astype(value.dtype))
     return r.cost, out
 
 
 def merit(nlp, Z, theta, y, penalty, cost_scale):
-    """The augmented Lagrangian L_A(Z, θ; y, ρ) (scaled cost)."""
+    """The augmented Lagrangian L_A(Z, θ; y, ρ) (scaled cost; ρ per row)."""
     cost, terms = _terms(nlp, Z, theta, y, penalty)
     value = cost_scale * cost
     for group, (_, estimate, _) in terms.items():
-        value += (jnp.sum(estimate**2) - jnp.sum(getattr(y, group) ** 2)) / (2 * penalty)
+        value += jnp.sum((estimate**2 - getattr(y, group) ** 2) / (2 * getattr(penalty, group)))
     return value
 
 
@@ -163,54 +169,48 @@ def violation(nlp, Z, theta):
 
 
 def _newton_system(nlp, Z, theta, y, penalty, cost_scale, curvature=False):
-    """Gradient and Hessian blocks of the augmented Lagrangian: Gauss–Newton, plus (when
-    ``curvature``) the constraints' curvature Σ λᵢ ∇²cᵢ weighted by the first-order multiplier
-    estimates λ = y + ρc (projected for inequalities): the exact Hessian up to the kinks."""
+    """The augmented Lagrangian's model at (Z, θ): the gradient (gz, gt) and Hessian blocks of
+    the cost and the equality rows (Gauss–Newton, plus, when ``curvature`` (a traced bool), the
+    constraints' curvature Σ λᵢ ∇²cᵢ at the first-order multiplier estimates λ = y + ρc,
+    projected for inequalities); and the inequality rows as ``box_qp.PenaltyRows``, whose
+    activity the step's model problem decides."""
     B = stagewise.blocks(nlp, Z, theta)
     _, terms = _terms(nlp, Z, theta, y, penalty)
-    K, nz = Z.shape
-    grad_z = cost_scale * B.cost_z
-    grad_t = cost_scale * B.cost_theta
-    D = cost_scale * B.cost_zz
-    L = jnp.zeros((K - 1, nz, nz))
-    Bd = cost_scale * B.cost_ztheta
-    C = cost_scale * B.cost_thetatheta
-
-    def path(group, Jz, Jt):
-        nonlocal grad_z, grad_t, D, Bd, C
-        _, estimate, active = terms[group]
-        w = penalty * active
-        grad_z += jnp.einsum("kmn,km->kn", Jz, estimate)
-        grad_t += jnp.einsum("kmg,km->g", Jt, estimate)
-        D += jnp.einsum("kma,km,kmb->kab", Jz, w, Jz)
-        Bd += jnp.einsum("kma,km,kmg->kag", Jz, w, Jt)
-        C += jnp.einsum("kmg,km,kmh->gh", Jt, w, Jt)
-
-    def transition(group, Jz, Jn, Jt):
-        nonlocal grad_z, grad_t, D, L, Bd, C
-        _, estimate, active = terms[group]
-        w = penalty * active
-        grad_z = grad_z.at[:-1].add(jnp.einsum("kmn,km->kn", Jz, estimate))
-        grad_z = grad_z.at[1:].add(jnp.einsum("kmn,km->kn", Jn, estimate))
-        grad_t += jnp.einsum("kmg,km->g", Jt, estimate)
-        D = D.at[:-1].add(jnp.einsum("kma,km,kmb->kab", Jz, w, Jz))
-        D = D.at[1:].add(jnp.einsum("kma,km,kmb->kab", Jn, w, Jn))
-        L += jnp.einsum("kma,km,kmb->kab", Jn, w, Jz)
-        Bd = Bd.at[:-1].add(jnp.einsum("kma,km,kmg->kag", Jz, w, Jt))
-        Bd = Bd.at[1:].add(jnp.einsum("kma,km,kmg->kag", Jn, w, Jt))
-        C += jnp.einsum("kmg,km,kmh->gh", Jt, w, Jt)
-
-    if curvature:
-        Dc, Lc, Bc, Cc = stagewise.constraint_curvature(nlp, Z, theta, **{g: terms[g][1] for g in terms})
-        D, L, Bd, C = D + Dc, L + Lc, Bd + Bc, C + Cc
-
-    path("path_equality", B.path_equality_z, B.path_equality_theta)
-    path("path_inequality", B.path_inequality_z, B.path_inequality_theta)
-    transition("transition_equality", B.transition_equality_z, B.transition_equality_znext, B.transition_equality_theta)
-    transition(
-        "transition_inequality", B.transition_inequality_z, B.transition_inequality_znext, B.transition_inequality_theta
+    K = Z.shape[0]
+    groups = {group: rows.Rows(*_group_jacobian(B, group)) for group in GROUPS}
+    gz, gt = cost_scale * B.cost_z, cost_scale * B.cost_theta
+    for group in ("path_equality", "transition_equality"):
+        pz, pt = rows.pull(groups[group], terms[group][1], K)
+        gz, gt = gz + pz, gt + pt
+    hessian = rows.add(
+        tuple(cost_scale * b for b in (B.cost_zz, jnp.zeros_like(B.cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta)),
+        *(rows.gram(groups[g], getattr(penalty, g), K) for g in ("path_equality", "transition_equality")),
     )
-    return (grad_z, grad_t), (D, L, Bd, C)
+
+    def with_curvature(blocks):
+        extra = stagewise.constraint_curvature(nlp, Z, theta, **{g: terms[g][1] for g in terms})
+        return rows.add(blocks, extra)
+
+    if curvature is not False:
+        hessian = jax.lax.cond(curvature, with_curvature, lambda blocks: blocks, hessian)
+    penalties = tuple(
+        box_qp.PenaltyRows(
+            rows=groups[group], shifted=terms[group][0] + getattr(y, group) / getattr(penalty, group),
+            penalty=getattr(penalty, group), lower=lower, upper=upper,
+        )
+        for group, lower, upper in (
+            ("path_inequality", nlp.path_lower, nlp.path_upper),
+            ("transition_inequality", nlp.transition_lower, nlp.transition_upper),
+        )
+    )
+    return (gz, gt), hessian, penalties
+
+
+def _group_jacobian(B, group):
+    """(jz, jt, jn) of a residual group from ``stagewise.blocks`` (jn None for path groups)."""
+    if group.startswith("path"):
+        return getattr(B, group + "_z"), getattr(B, group + "_theta"), None
+    return getattr(B, group + "_z"), getattr(B, group + "_theta"), getattr(B, group + "_znext")
 
 
 HISTORY_COLUMNS = ("merit", "violation", "stationarity", "penalty", "step_length", "regularisation")
@@ -224,8 +224,8 @@ class State:
     Z: jax.Array
     theta: jax.Array
     multipliers: Multipliers
-    penalty: jax.Array
-    previous_violation: jax.Array
+    penalty: Multipliers  # per-row penalties, same shapes
+    previous_violation: Multipliers  # per-row infeasibility at the previous outer iteration
     inner_tolerance: jax.Array
     regularisation: jax.Array
     outer: jax.Array
@@ -243,8 +243,9 @@ class State:
 class Solution:
     """Result of a solve: the optimum (scaled NLP variables), multipliers, why it stopped, and
     statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 6) has one row per
-    inner iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected); rows
-    past ``inner_iterations`` are NaN."""
+    inner iteration with the columns of ``HISTORY_COLUMNS`` (penalty: the largest row's; step
+    length 0: step rejected); rows past ``inner_iterations`` are NaN; ``penalty`` holds the
+    per-row penalties (``Multipliers``-shaped)."""
 
     Z: jax.Array
     theta: jax.Array
@@ -256,8 +257,12 @@ class Solution:
     stationarity: jax.Array
     outer_iterations: jax.Array
     inner_iterations: jax.Array
-    penalty: jax.Array
+    penalty: Multipliers
     history: jax.Array
+
+
+def _largest(rows):
+    return jnp.max(jnp.stack([jnp.max(leaf, initial=0.0) for leaf in jax.tree.leaves(rows)]))
 
 
 def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
@@ -267,15 +272,14 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
     Returns a ``Solution``.
     """
     Z0, theta0 = jnp.clip(Z0, nlp.z_lower, nlp.z_upper), jnp.clip(theta0, nlp.theta_lower, nlp.theta_upper)
-    y0 = _zeros_like_multipliers(nlp, Z0, theta0) if multipliers is None else multipliers
+    y0 = _full_like_multipliers(nlp, Z0, theta0, 0.0) if multipliers is None else multipliers
     grad0 = stagewise.blocks(nlp, Z0, theta0)
     scale_ref = jnp.maximum(jnp.max(jnp.abs(grad0.cost_z)), jnp.max(jnp.abs(grad0.cost_theta)))
     cost_scale = 1.0 / jnp.maximum(1.0, scale_ref)
-    penalty0 = jnp.asarray(options.penalty0, dtype=Z0.dtype)
     v0, _ = violation(nlp, Z0, theta0)
     state = State(
-        Z=Z0, theta=theta0, multipliers=y0, penalty=penalty0,
-        previous_violation=jnp.asarray(jnp.inf, Z0.dtype),
+        Z=Z0, theta=theta0, multipliers=y0, penalty=_full_like_multipliers(nlp, Z0, theta0, options.penalty0),
+        previous_violation=_full_like_multipliers(nlp, Z0, theta0, jnp.inf),
         inner_tolerance=jnp.asarray(options.inner_tolerance0, Z0.dtype),
         regularisation=jnp.asarray(options.regularisation0, Z0.dtype),
         outer=jnp.asarray(0), inner=jnp.asarray(0), inner_this_outer=jnp.asarray(0),
@@ -292,7 +296,14 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
 
     def inner_step(state):
         y, rho = state.multipliers, state.penalty
-        (gz, gt), (D, L, Bd, C) = _newton_system(nlp, state.Z, state.theta, y, rho, cost_scale, options.curvature)
+        curvature = options.curvature and (state.violation < options.curvature_below)
+        (gz, gt), (D, L, Bd, C), penalties = _newton_system(
+            nlp, state.Z, state.theta, y, rho, cost_scale, curvature
+        )
+        model_gradient = (gz, gt)
+        for p in penalties:
+            pz, pt = rows.pull(p.rows, p.penalty * (p.shifted - jnp.clip(p.shifted, p.lower, p.upper)), gz.shape[0])
+            gz, gt = gz + pz, gt + pt
         # Projected gradient: the stationarity measure over the box.
         pz, pt = project(state.Z - gz, state.theta - gt)
         pz, pt = pz - state.Z, pt - state.theta
@@ -317,6 +328,16 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
                 ft[:, None] * C_ * ft[None, :] + jnp.diag(1.0 - ft),
             )
 
+        # The inertia is checked with the inequality rows active here (their ρJᵀJ convexifies
+        # the curvature their multipliers bring); the QP refactors as activity changes.
+        active_rows = rows.add(
+            *(rows.gram(p.rows, p.penalty * (p.shifted != jnp.clip(p.shifted, p.lower, p.upper)), gz.shape[0])
+              for p in penalties)
+        )
+
+        def definite(delta):
+            return linalg.factor(*masked(rows.add(regularised(delta), active_rows))).ok
+
         def indefinite(carry):
             delta, ok = carry
             return (~ok) & (delta < options.regularisation_max)
@@ -324,16 +345,19 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         def stiffen(carry):
             delta, _ = carry
             delta = jnp.maximum(delta * 10.0, 1e-8)
-            return delta, linalg.factor(*masked(regularised(delta))).ok
+            return delta, definite(delta)
 
         delta = state.regularisation
-        delta, _ = jax.lax.while_loop(indefinite, stiffen, (delta, linalg.factor(*masked(regularised(delta))).ok))
-        # The Newton step: the box-constrained QP of the model, its active set found by the QP.
+        delta, _ = jax.lax.while_loop(indefinite, stiffen, (delta, definite(delta)))
+        # The Newton step: the model minimised over the box, its active sets found by the QP.
         (dz, dt), qp_ok = box_qp.solve(
-            regularised(delta), (gz, gt), (lower[0] - state.Z, lower[1] - state.theta),
-            (upper[0] - state.Z, upper[1] - state.theta), options.qp_iterations,
+            regularised(delta), model_gradient, (lower[0] - state.Z, lower[1] - state.theta),
+            (upper[0] - state.Z, upper[1] - state.theta), options.qp_iterations, penalties,
         )
         base = merit(nlp, state.Z, state.theta, y, rho, cost_scale)
+
+        def sufficient(value, decrease):
+            return (value <= base + 1e-4 * decrease) & (decrease < 0) & jnp.isfinite(value)
 
         def try_step(alpha):
             Z, theta = project(state.Z + alpha * dz, state.theta + alpha * dt)
@@ -347,8 +371,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
 
         def keep_searching(carry):
             alpha, value, decrease, count = carry
-            sufficient = (value <= base + 1e-4 * decrease) & (decrease < 0)
-            return (~(sufficient & jnp.isfinite(value))) & (count < options.line_search_steps)
+            return (~sufficient(value, decrease)) & (count < options.line_search_steps)
 
         alpha, value, _, count = jax.lax.while_loop(keep_searching, search, (1.0, *try_step(1.0), 0))
         good = qp_ok & jnp.isfinite(value) & (count < options.line_search_steps)
@@ -362,7 +385,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         regularisation = jnp.minimum(regularisation, options.regularisation_max)
         v, _ = violation(nlp, Z, theta)
         record = jnp.stack(
-            [jnp.where(good, value, base), v, stationarity, rho, jnp.where(good, alpha, 0.0), delta]
+            [jnp.where(good, value, base), v, stationarity, _largest(rho), jnp.where(good, alpha, 0.0), delta]
         )
         if options.progress is not None:
             jax.debug.callback(options.progress, state.iterations, state.outer, record)
@@ -374,20 +397,30 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         ), good, stationarity
 
     def outer_update(state):
-        """First-order multiplier update, safeguarded (ALGENCAN); the penalty grows only when
-        the violation failed to shrink by ``penalty_trigger`` since the last outer iteration."""
+        """First-order multiplier update, safeguarded (ALGENCAN); a row's penalty grows only when
+        its measure |y⁺ − y|/ρ (|c| for equalities; infeasibility and complementarity for
+        inequalities) failed to shrink by ``penalty_trigger`` since the last outer iteration."""
         rho = state.penalty
         _, terms = _terms(nlp, state.Z, state.theta, state.multipliers, rho)
         v = state.violation
         bound = options.multiplier_max
-        multipliers = Multipliers(**{group: jnp.clip(terms[group][1], -bound, bound) for group in terms})
-        failed = (v > options.penalty_trigger * state.previous_violation) & (v > options.tolerance)
-        new_rho = jnp.where(failed, jnp.minimum(rho * options.penalty_growth, options.penalty_max), rho)
+        multipliers = Multipliers(**{group: jnp.clip(terms[group][1], -bound, bound) for group in GROUPS})
+        measure = Multipliers(
+            **{g: jnp.abs(terms[g][1] - getattr(state.multipliers, g)) / getattr(rho, g) for g in GROUPS}
+        )
+        failed = jax.tree.map(
+            lambda m, previous: (m > options.penalty_trigger * previous) & (m > options.tolerance),
+            measure, state.previous_violation,
+        )
+        new_rho = jax.tree.map(
+            lambda r, f: jnp.where(f, jnp.minimum(r * options.penalty_growth, options.penalty_max), r), rho, failed
+        )
         converged = (v <= options.tolerance) & (state.stationarity <= options.stationarity)
-        stalled = failed & (rho >= options.penalty_max)
+        stalled = jnp.any(jnp.stack([jnp.any(f & (r >= options.penalty_max)) for r, f in zip(
+            jax.tree.leaves(rho), jax.tree.leaves(failed))]))
         status = jnp.where(converged, int(Status.CONVERGED), jnp.where(stalled, int(Status.STALLED), state.status))
         return dataclasses.replace(
-            state, multipliers=multipliers, penalty=new_rho, previous_violation=v,
+            state, multipliers=multipliers, penalty=new_rho, previous_violation=measure,
             inner_tolerance=jnp.maximum(state.inner_tolerance * options.inner_tightening, options.stationarity),
             outer=state.outer + 1, inner_this_outer=jnp.asarray(0), status=status,
         )

@@ -1,0 +1,53 @@
+"""Stage-wise constraint rows (``solver.rows``) against the dense Jacobian they stand for."""
+
+import numpy as np
+import pytest
+
+import jaxmm  # noqa: F401  (float64)
+from jaxmm.solver import rows
+
+
+def random_rows(K, n, ng, m, transition, seed):
+    """Random path (R = K) or transition (R = K − 1) rows and their dense Jacobian (R m, K n + ng)."""
+    rng = np.random.default_rng(seed)
+    R = K - 1 if transition else K
+    jz, jt = rng.normal(size=(R, m, n)), rng.normal(size=(R, m, ng))
+    jn = rng.normal(size=(R, m, n)) if transition else None
+    dense = np.zeros((R * m, K * n + ng))
+    for k in range(R):
+        block = slice(k * m, (k + 1) * m)
+        dense[block, k * n : (k + 1) * n] = jz[k]
+        if transition:
+            dense[block, (k + 1) * n : (k + 2) * n] = jn[k]
+        dense[block, K * n :] = jt[k]
+    return rows.Rows(jz, jt, jn), dense
+
+
+def dense_blocks(blocks, K, n):
+    D, L, B, C = (np.asarray(b) for b in blocks)
+    A = np.zeros((K * n + C.shape[0],) * 2)
+    for k in range(K):
+        A[k * n : (k + 1) * n, k * n : (k + 1) * n] = D[k]
+        A[k * n : (k + 1) * n, K * n :] = B[k]
+        A[K * n :, k * n : (k + 1) * n] = B[k].T
+        if k:
+            A[k * n : (k + 1) * n, (k - 1) * n : k * n] = L[k - 1]
+            A[(k - 1) * n : k * n, k * n : (k + 1) * n] = L[k - 1].T
+    A[K * n :, K * n :] = C
+    return A
+
+
+@pytest.mark.parametrize("transition", [False, True])
+def test_rows_apply_pull_and_gram_match_the_dense_jacobian(transition):
+    K, n, ng, m = 5, 4, 2, 3
+    J, dense = random_rows(K, n, ng, m, transition, seed=int(transition))
+    rng = np.random.default_rng(7)
+    dz, dt = rng.normal(size=(K, n)), rng.normal(size=ng)
+    R = K - 1 if transition else K
+    v, w = rng.normal(size=(R, m)), rng.uniform(0.0, 2.0, size=(R, m))
+    d = np.concatenate([dz.reshape(-1), dt])
+    np.testing.assert_allclose(np.asarray(rows.apply(J, dz, dt)).reshape(-1), dense @ d, atol=1e-12)
+    gz, gt = rows.pull(J, v, K)
+    np.testing.assert_allclose(np.concatenate([np.asarray(gz).reshape(-1), gt]), dense.T @ v.reshape(-1), atol=1e-12)
+    expected = dense.T @ np.diag(w.reshape(-1)) @ dense
+    np.testing.assert_allclose(dense_blocks(rows.gram(J, w, K), K, n), expected, atol=1e-12)
