@@ -302,7 +302,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         )
         model_gradient = (gz, gt)
         for p in penalties:
-            pz, pt = rows.pull(p.rows, p.penalty * (p.shifted - jnp.clip(p.shifted, p.lower, p.upper)), gz.shape[0])
+            pz, pt = rows.pull(p.rows, p.penalty * box_qp.excess(p), gz.shape[0])
             gz, gt = gz + pz, gt + pt
         # Projected gradient: the stationarity measure over the box.
         pz, pt = project(state.Z - gz, state.theta - gt)
@@ -331,8 +331,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         # The inertia is checked with the inequality rows active here (their ρJᵀJ convexifies
         # the curvature their multipliers bring); the QP refactors as activity changes.
         active_rows = rows.add(
-            *(rows.gram(p.rows, p.penalty * (p.shifted != jnp.clip(p.shifted, p.lower, p.upper)), gz.shape[0])
-              for p in penalties)
+            *(rows.gram(p.rows, p.penalty * (box_qp.excess(p) != 0), gz.shape[0]) for p in penalties)
         )
 
         def definite(delta):

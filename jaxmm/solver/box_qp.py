@@ -40,6 +40,13 @@ class PenaltyRows:
     upper: jax.Array
 
 
+def excess(p, d=None):
+    """r − Π_[l,u](r) of ``PenaltyRows`` p at r = a + J d (d = None: at d = 0); nonzero on the
+    active rows. ρ · excess is the rows' multiplier estimate."""
+    r = p.shifted if d is None else p.shifted + rows_.apply(p.rows, *d)
+    return r - jnp.clip(r, p.lower, p.upper)
+
+
 def solve(hessian, g, lo, hi, iterations, penalties=(), search_steps=20):
     """Approximately solve the model problem.
 
@@ -51,25 +58,21 @@ def solve(hessian, g, lo, hi, iterations, penalties=(), search_steps=20):
     D, L, B, C = hessian
     K = D.shape[0]
 
-    def outside(p, d):
-        r = p.shifted + rows_.apply(p.rows, *d)
-        return r, r - jnp.clip(r, p.lower, p.upper)
-
     def value(d):
         hz, ht = linalg.matvec(D, L, B, C, *d)
         quadratic = sum(jnp.sum(gi * di) + 0.5 * jnp.sum(di * hi_) for gi, di, hi_ in zip(g, d, (hz, ht)))
-        return quadratic + sum(0.5 * jnp.sum(p.penalty * outside(p, d)[1] ** 2) for p in penalties)
+        return quadratic + sum(0.5 * jnp.sum(p.penalty * excess(p, d) ** 2) for p in penalties)
 
     def gradient(d):
         hz, ht = linalg.matvec(D, L, B, C, *d)
         gz, gt = g[0] + hz, g[1] + ht
         for p in penalties:
-            pz, pt = rows_.pull(p.rows, p.penalty * outside(p, d)[1], K)
+            pz, pt = rows_.pull(p.rows, p.penalty * excess(p, d), K)
             gz, gt = gz + pz, gt + pt
         return gz, gt
 
     def activity(d):
-        return tuple(outside(p, d)[1] != 0 for p in penalties)
+        return tuple(excess(p, d) != 0 for p in penalties)
 
     def project(d):
         return tuple(jnp.clip(di, l, h) for di, l, h in zip(d, lo, hi))
