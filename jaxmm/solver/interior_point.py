@@ -1,0 +1,541 @@
+"""A primal–dual interior-point solver for stage-wise NLPs (``jaxmm.transcription.stagewise``).
+
+    minimise f(z, θ)  s.t.  c(z, θ) = 0,  l_g ≤ g(z, θ) ≤ u_g,  z_lo ≤ z ≤ z_hi,  θ_lo ≤ θ ≤ θ_hi
+
+Inequalities become equalities g − s = 0 with a slack s in [l_g, u_g]; every bound (variables
+and slacks) is handled by a logarithmic barrier with primal–dual bound multipliers (Fiacco &
+McCormick; the barrier-parameter schedule, fraction-to-boundary rule, multiplier safeguards
+and filter line search of IPOPT, Wächter & Biegler 2006). The equality rows enter the Newton
+system through a primal–dual augmented Lagrangian (stabilised SQP; Gill & Robinson 2013): with
+penalty ρ = 1/δ the step solves
+
+    [ W + Σ + δ_w I   Jᵀ  ] [ dx ]     [ ∇f + Jᵀλ − barrier gradient ]
+    [ J             −δ I  ] [ dλ ] = − [ c                            ]
+
+for the current multipliers λ, so the KKT matrix condenses exactly to the positive-definite
+matrix W + Σ + δ_w I + ρ JᵀJ (the slacks are eliminated row by row). Its inertia is correct
+exactly when its block Cholesky succeeds, which makes the factorisation the inertia test;
+δ_w grows until it does. W is the exact Hessian of the Lagrangian (cost Hessian plus the
+constraints' curvature at λ). Every linear system is bordered block-tridiagonal and solved by
+``linalg`` (block Cholesky in ``lax.scan``, Schur complement for the globals), refined once.
+
+Rows and the cost are scaled at the starting point as IPOPT's gradient-based scaling does
+(no row or cost gradient above 100). The whole solve is one ``lax.while_loop``: it can be
+jitted and vmapped; a non-finite value stops it with status ``NAN`` and the last finite iterate.
+"""
+
+import dataclasses
+import enum
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+
+from jaxmm.solver import linalg, rows
+from jaxmm.transcription import stagewise
+
+EQUALITIES = ("path_equality", "transition_equality")
+INEQUALITIES = ("path_inequality", "transition_inequality")
+GROUPS = EQUALITIES + INEQUALITIES
+
+
+class Status(enum.IntEnum):
+    """Why a solve stopped."""
+
+    CONVERGED = 0
+    MAX_ITERATIONS = 1
+    STALLED = 2  # no step is acceptable to the filter even with heavy regularisation: likely infeasible
+    NAN = 3  # a non-finite value appeared; the last finite iterate is returned
+    RUNNING = 4
+
+    @property
+    def message(self):
+        return {
+            Status.CONVERGED: "converged: feasibility, stationarity and complementarity within tolerance",
+            Status.MAX_ITERATIONS: "stopped at the iteration limit before converging",
+            Status.STALLED: "stalled: no acceptable step reduces the infeasibility (locally infeasible?)",
+            Status.NAN: "a non-finite value appeared; returned the last finite iterate",
+            Status.RUNNING: "running",
+        }[self]
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """Solver settings (static).
+
+    tolerance: max constraint violation (the NLP's own units: |c|, distance of g to [l, u]);
+    stationarity: scaled dual infeasibility and complementarity (IPOPT's E₀ without the
+    violation); max_iterations: Newton iterations; barrier0, barrier_min: first and last barrier
+    parameter μ; barrier_factor, barrier_power: μ ← min(factor μ, μ^power) once the barrier
+    problem is solved to barrier_tolerance_factor × μ; dual_regularisation: δ = 1/ρ of the
+    equality rows; line_search_steps: backtracking halvings; max_gradient: scaling target;
+    max_rejections: consecutive rejected steps before ``STALLED``;
+    progress: called on the host after every iteration as progress(iteration, record) with
+    record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
+    """
+
+    tolerance: float = 1e-6
+    stationarity: float = 1e-6
+    max_iterations: int = 1000
+    barrier0: float = 0.1
+    barrier_min: float = 1e-9
+    barrier_factor: float = 0.2
+    barrier_power: float = 1.5
+    barrier_tolerance_factor: float = 10.0
+    dual_regularisation: float = 1e-8
+    line_search_steps: int = 30
+    max_gradient: float = 100.0
+    max_rejections: int = 15
+    progress: Callable | None = None
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Multipliers:
+    """Multipliers of every constraint group (same shapes as the residuals), in the NLP's units:
+    the Lagrangian is f + Σ λ·c (inequalities: λ > 0 at an active upper bound, < 0 at a lower)."""
+
+    path_equality: jax.Array
+    transition_equality: jax.Array
+    path_inequality: jax.Array
+    transition_inequality: jax.Array
+
+
+HISTORY_COLUMNS = ("objective", "violation", "stationarity", "barrier", "step_length", "regularisation")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """Result of a solve: the optimum (scaled NLP variables), multipliers, why it stopped and
+    statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 6) has one row per
+    iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected); rows past
+    ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations)."""
+
+    Z: jax.Array
+    theta: jax.Array
+    multipliers: Multipliers
+    status: jax.Array
+    objective: jax.Array
+    violation: jax.Array
+    violation_per_group: dict
+    stationarity: jax.Array
+    iterations: jax.Array
+    barrier_updates: jax.Array
+    history: jax.Array
+
+
+def violation(nlp, Z, theta):
+    """Max constraint violation over every group (the NLP's units) and per group."""
+    r = stagewise.residuals(nlp, Z, theta)
+    groups = dict(
+        path_equality=jnp.abs(r.path_equality),
+        transition_equality=jnp.abs(r.transition_equality),
+        path_inequality=_outside(r.path_inequality, nlp.path_lower, nlp.path_upper),
+        transition_inequality=_outside(r.transition_inequality, nlp.transition_lower, nlp.transition_upper),
+        z_box=_outside(Z, nlp.z_lower, nlp.z_upper),
+        theta_box=_outside(theta, nlp.theta_lower, nlp.theta_upper),
+    )
+    per_group = {k: jnp.max(v, initial=0.0) for k, v in groups.items()}
+    return jnp.max(jnp.stack(list(per_group.values()))), per_group
+
+
+def _outside(value, lower, upper):
+    return jnp.maximum(jnp.maximum(lower - value, value - upper), 0.0)
+
+
+def _group_rows(B, group):
+    if group.startswith("path"):
+        return rows.Rows(getattr(B, group + "_z"), getattr(B, group + "_theta"))
+    return rows.Rows(getattr(B, group + "_z"), getattr(B, group + "_theta"), getattr(B, group + "_znext"))
+
+
+def _scaled_rows(r, scale):
+    return rows.Rows(*(None if j is None else j * scale[..., None] for j in (r.jz, r.jt, r.jn)))
+
+
+def _row_scale(r, max_gradient):
+    """IPOPT's gradient-based row scaling: min(1, max_gradient / ‖∇cᵢ‖∞) per row."""
+    largest = jnp.maximum(jnp.max(jnp.abs(r.jz), axis=-1, initial=0.0), jnp.max(jnp.abs(r.jt), axis=-1, initial=0.0))
+    if r.jn is not None:
+        largest = jnp.maximum(largest, jnp.max(jnp.abs(r.jn), axis=-1, initial=0.0))
+    return jnp.minimum(1.0, max_gradient / jnp.maximum(largest, 1e-300))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _Bounds:
+    """Bounds of the primal leaves (Z, θ, path slacks, transition slacks) and their masks."""
+
+    lower: tuple
+    upper: tuple
+    has_lower: tuple  # finite lower bound on a non-fixed entry
+    has_upper: tuple
+    free: tuple  # not fixed (lower < upper)
+
+
+def _bounds(nlp, slack_scale):
+    """``_Bounds`` of (Z, θ, path slacks, transition slacks); a slack is in the row's scaled units."""
+    lower = (nlp.z_lower, nlp.theta_lower, nlp.path_lower * slack_scale[0], nlp.transition_lower * slack_scale[1])
+    upper = (nlp.z_upper, nlp.theta_upper, nlp.path_upper * slack_scale[0], nlp.transition_upper * slack_scale[1])
+    free = tuple(lo < hi for lo, hi in zip(lower, upper))
+    has_lower = tuple(jnp.isfinite(lo) & f for lo, f in zip(lower, free))
+    has_upper = tuple(jnp.isfinite(hi) & f for hi, f in zip(upper, free))
+    return _Bounds(lower, upper, has_lower, has_upper, free)
+
+
+def _distances(P, bounds):
+    """Distances to the finite bounds (1 where there is none)."""
+    dl = tuple(jnp.where(m, p - lo, 1.0) for p, lo, m in zip(P, bounds.lower, bounds.has_lower))
+    du = tuple(jnp.where(m, hi - p, 1.0) for p, hi, m in zip(P, bounds.upper, bounds.has_upper))
+    return dl, du
+
+
+def _barrier(P, bounds, mu):
+    dl, du = _distances(P, bounds)
+    return -mu * sum(
+        jnp.sum(jnp.where(ml, jnp.log(a), 0.0)) + jnp.sum(jnp.where(mu_, jnp.log(b), 0.0))
+        for a, b, ml, mu_ in zip(dl, du, bounds.has_lower, bounds.has_upper)
+    )
+
+
+def _tmap(fn, *trees):
+    return tuple(fn(*leaves) for leaves in zip(*trees))
+
+
+def _dot(a, b):
+    return sum(jnp.sum(x * y) for x, y in zip(a, b))
+
+
+def _max_abs(tree):
+    return jnp.max(jnp.stack([jnp.max(jnp.abs(leaf), initial=0.0) for leaf in tree]))
+
+
+def _interior(P, bounds, kappa=1e-2):
+    """Move P strictly inside its bounds (IPOPT's bound push)."""
+
+    def push(p, lo, hi, ml, mu_, free):
+        width = jnp.where(ml & mu_, hi - lo, jnp.inf)
+        pl = jnp.minimum(kappa * jnp.maximum(1.0, jnp.abs(jnp.where(ml, lo, 0.0))), kappa * width)
+        pu = jnp.minimum(kappa * jnp.maximum(1.0, jnp.abs(jnp.where(mu_, hi, 0.0))), kappa * width)
+        p = jnp.where(ml, jnp.maximum(p, lo + pl), p)
+        p = jnp.where(mu_, jnp.minimum(p, hi - pu), p)
+        return jnp.where(free, p, lo)
+
+    return _tmap(push, P, bounds.lower, bounds.upper, bounds.has_lower, bounds.has_upper, bounds.free)
+
+
+def _fraction_to_boundary(values, steps, tau):
+    """Largest α ≤ 1 keeping every value (distance or multiplier) ≥ (1 − τ) of itself."""
+    alpha = jnp.asarray(1.0)
+    for v, d in zip(values, steps):
+        ratio = jnp.where(d < 0, -tau * v / jnp.where(d < 0, d, -1.0), jnp.inf)
+        alpha = jnp.minimum(alpha, jnp.min(ratio, initial=jnp.inf))
+    return alpha
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _State:
+    P: tuple  # (Z, θ, path slacks, transition slacks)
+    y: tuple  # scaled multipliers of (path eq, transition eq, path ineq, transition ineq)
+    zl: tuple  # bound multipliers per primal leaf
+    zu: tuple
+    mu: jax.Array
+    regularisation: jax.Array  # last nonzero δ_w that was needed (0: none yet)
+    forced: jax.Array  # δ_w to start from after a rejected step (0 after an accepted one)
+    filter_theta: jax.Array
+    filter_phi: jax.Array
+    filter_count: jax.Array
+    rejections: jax.Array
+    iterations: jax.Array
+    barrier_updates: jax.Array
+    status: jax.Array
+    violation: jax.Array
+    stationarity: jax.Array
+    history: jax.Array
+
+
+FILTER_SIZE = 128
+
+
+def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
+    """Minimise the stage-wise NLP from (Z0 (K, nz), θ0 (ng,)); warm-start the equality and
+    inequality multipliers with ``multipliers`` (a ``Multipliers``, e.g. a previous solution's).
+
+    Jittable and vmappable (options are static): ``jax.jit(solve, static_argnames="options")``.
+    Returns a ``Solution``.
+    """
+    K = Z0.shape[0]
+    dtype = Z0.dtype
+    B0 = stagewise.blocks(nlp, Z0, theta0)
+    cost_scale = jnp.minimum(1.0, options.max_gradient / jnp.maximum(
+        jnp.maximum(jnp.max(jnp.abs(B0.cost_z)), jnp.max(jnp.abs(B0.cost_theta))), 1e-300))
+    row_scale = tuple(_row_scale(_group_rows(B0, g), options.max_gradient) for g in GROUPS)
+    # Inequality rows with no finite bound constrain nothing: their slack follows g.
+    active = (
+        jnp.broadcast_to(jnp.isfinite(nlp.path_lower) | jnp.isfinite(nlp.path_upper), row_scale[2].shape),
+        jnp.broadcast_to(jnp.isfinite(nlp.transition_lower) | jnp.isfinite(nlp.transition_upper), row_scale[3].shape),
+    )
+    delta_c = options.dual_regularisation
+    bounds = _bounds(nlp, row_scale[2:])
+
+    def evaluate(P):
+        """Scaled cost, scaled equality residuals (c, g − s) and the raw residuals."""
+        Z, theta, sp, st = P
+        r = stagewise.residuals(nlp, Z, theta)
+        c = (
+            r.path_equality * row_scale[0],
+            r.transition_equality * row_scale[1],
+            (r.path_inequality * row_scale[2] - sp) * active[0],
+            (r.transition_inequality * row_scale[3] - st) * active[1],
+        )
+        return cost_scale * r.cost, c, r
+
+    def infeasibility(c):
+        return sum(jnp.sum(jnp.abs(v)) for v in c)
+
+    r0 = stagewise.residuals(nlp, Z0, theta0)
+    P0 = _interior((Z0, theta0, r0.path_inequality * row_scale[2], r0.transition_inequality * row_scale[3]), bounds)
+    if multipliers is None:
+        y0 = tuple(jnp.zeros_like(s) for s in row_scale)
+    else:
+        y0 = tuple(cost_scale * getattr(multipliers, g) / s for g, s in zip(GROUPS, row_scale))
+    ones = tuple(jnp.ones_like(p) for p in P0)
+    zl0 = _tmap(lambda o, m: jnp.where(m, o, 0.0), ones, bounds.has_lower)
+    zu0 = _tmap(lambda o, m: jnp.where(m, o, 0.0), ones, bounds.has_upper)
+    _, c0, _ = evaluate(P0)
+    theta_max = 1e4 * jnp.maximum(1.0, infeasibility(c0))
+    theta_min = 1e-4 * jnp.maximum(1.0, infeasibility(c0))
+    v0, _ = violation(nlp, P0[0], P0[1])
+
+    state = _State(
+        P=P0, y=y0, zl=zl0, zu=zu0, mu=jnp.asarray(options.barrier0, dtype),
+        regularisation=jnp.asarray(0.0, dtype), forced=jnp.asarray(0.0, dtype),
+        filter_theta=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(theta_max),
+        filter_phi=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(-jnp.inf),
+        filter_count=jnp.asarray(1), rejections=jnp.asarray(0), iterations=jnp.asarray(0),
+        barrier_updates=jnp.asarray(0), status=jnp.asarray(int(Status.RUNNING)), violation=v0,
+        stationarity=jnp.asarray(jnp.inf, dtype),
+        history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
+    )
+    fixed_z = (~bounds.free[0]).astype(dtype)
+    fixed_t = (~bounds.free[1]).astype(dtype)
+
+    def body(state):
+        P, y, zl, zu = state.P, state.y, state.zl, state.zu
+        Z, theta = P[0], P[1]
+        B = stagewise.blocks(nlp, Z, theta)
+        _, c, _ = evaluate(P)
+        J = tuple(_scaled_rows(_group_rows(B, g), s) for g, s in zip(GROUPS, row_scale))
+        J = J[:2] + tuple(rows.Rows(*(None if j is None else j * a[..., None] for j in (r.jz, r.jt, r.jn)))
+                          for r, a in zip(J[2:], active))
+        # Gradient of the Lagrangian f + yᵀc (bounds apart), per primal leaf.
+        gz, gt = cost_scale * B.cost_z, cost_scale * B.cost_theta
+        for r, yi in zip(J, y):
+            pz, pt = rows.pull(r, yi, K)
+            gz, gt = gz + pz, gt + pt
+        grad = (gz, gt, -y[2], -y[3])
+        dual = _tmap(lambda g, a, b, f: jnp.where(f, g - a + b, 0.0), grad, zl, zu, bounds.free)
+        dl, du = _distances(P, bounds)
+        n_mult = sum(v.size for v in y) + sum(v.size for v in zl) + sum(v.size for v in zu)
+        n_var = sum(p.size for p in P)
+        s_d = jnp.maximum(100.0, (sum(jnp.sum(jnp.abs(v)) for v in y + zl + zu)) / max(n_mult, 1)) / 100.0
+        s_c = jnp.maximum(100.0, (sum(jnp.sum(jnp.abs(v)) for v in zl + zu)) / max(2 * n_var, 1)) / 100.0
+        dual_error = _max_abs(dual) / s_d
+        primal_error = _max_abs(c)
+
+        def complementarity_error(mu):
+            comp = _tmap(lambda a, z, m: jnp.where(m, a * z - mu, 0.0), dl + du, zl + zu,
+                         bounds.has_lower + bounds.has_upper)
+            return _max_abs(comp) / s_c
+
+        v_now = state.violation
+        error0 = jnp.maximum(dual_error, complementarity_error(0.0))
+        converged = (error0 <= options.stationarity) & (v_now <= options.tolerance)
+
+        # Barrier update (monotone, IPOPT): as long as the barrier problem is solved to κ_ε μ.
+        def solved(carry):
+            mu, _ = carry
+            return (jnp.maximum(jnp.maximum(dual_error, primal_error), complementarity_error(mu))
+                    <= options.barrier_tolerance_factor * mu) & (mu > options.barrier_min)
+
+        def decrease(carry):
+            mu, count = carry
+            new = jnp.maximum(options.barrier_min / 10, jnp.minimum(options.barrier_factor * mu, mu**options.barrier_power))
+            return new, count + 1
+
+        mu, updates = jax.lax.while_loop(solved, decrease, (state.mu, jnp.asarray(0)))
+        reset = updates > 0
+        filter_theta = jnp.where(reset, jnp.full_like(state.filter_theta, jnp.inf).at[0].set(theta_max), state.filter_theta)
+        filter_phi = jnp.where(reset, jnp.full_like(state.filter_phi, jnp.inf).at[0].set(-jnp.inf), state.filter_phi)
+        filter_count = jnp.where(reset, 1, state.filter_count)
+        tau = jnp.maximum(0.99, 1.0 - mu)
+
+        # Barrier Hessian Σ and barrier gradient per leaf.
+        sigma = _tmap(lambda a, b, p, q, ml, mu_: jnp.where(ml, p / a, 0.0) + jnp.where(mu_, q / b, 0.0),
+                      dl, du, zl, zu, bounds.has_lower, bounds.has_upper)
+        bgrad = _tmap(lambda a, b, ml, mu_: jnp.where(ml, -mu / a, 0.0) + jnp.where(mu_, mu / b, 0.0),
+                      dl, du, bounds.has_lower, bounds.has_upper)
+        rx = _tmap(lambda g, b: g + b, grad, bgrad)  # the barrier problem's dual residual
+        # Slacks eliminated row by row: dv = d_g (J dx + c_g + r_s / σ_s), ds = (dv − r_s) / σ_s.
+        # Fixed slacks (equal bounds) and rows without bounds have σ = 0: their 1/σ is 0.
+        inv_sigma = tuple(jnp.where(s > 0, 1.0 / jnp.where(s > 0, s, 1.0), 0.0) for s in sigma[2:])
+        weight_g = tuple(jnp.where(a, 1.0 / (i + delta_c), 0.0) for i, a in zip(inv_sigma, active))
+        shift_g = tuple(cg + r * i for cg, r, i in zip(c[2:], rx[2:], inv_sigma))
+        weights = (jnp.full_like(c[0], 1.0 / delta_c), jnp.full_like(c[1], 1.0 / delta_c)) + weight_g
+        shifts = (c[0], c[1]) + shift_g
+        hessian = rows.add(
+            tuple(cost_scale * b for b in (B.cost_zz, jnp.zeros_like(B.cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta)),
+            stagewise.constraint_curvature(nlp, Z, theta, *(yi * s for yi, s in zip(y, row_scale))),
+            *(rows.gram(r, w, K) for r, w in zip(J, weights)),
+        )
+        rhs_z, rhs_t = -rx[0], -rx[1]
+        for r, w, sh in zip(J, weights, shifts):
+            pz, pt = rows.pull(r, w * sh, K)
+            rhs_z, rhs_t = rhs_z - pz, rhs_t - pt
+        rhs = (rhs_z * (1 - fixed_z), rhs_t * (1 - fixed_t))
+
+        def regularised(delta):
+            D, L, Bd, C = hessian
+            fz, ft = 1 - fixed_z, 1 - fixed_t
+            return (
+                fz[:, :, None] * (D + jax.vmap(jnp.diag)(sigma[0] + delta)) * fz[:, None, :] + jax.vmap(jnp.diag)(fixed_z),
+                fz[1:, :, None] * L * fz[:-1, None, :],
+                fz[:, :, None] * Bd * ft[None, None, :],
+                ft[:, None] * (C + jnp.diag(sigma[1] + delta)) * ft[None, :] + jnp.diag(fixed_t),
+            )
+
+        # Inertia correction (IPOPT): δ_w = 0 first, then from a fraction of the last one, ×8.
+        def attempt(delta):
+            chol = linalg.factor(*regularised(delta))
+            return chol, chol.ok
+
+        chol0, ok0 = attempt(state.forced)
+
+        def needs_more(carry):
+            delta, _, ok = carry
+            return (~ok) & (delta < 1e40)
+
+        def grow(carry):
+            delta, _, _ = carry
+            delta = jnp.where(delta == 0.0, jnp.where(state.regularisation == 0.0, 1e-4,
+                                                       jnp.maximum(1e-20, state.regularisation / 3)),
+                              delta * jnp.where(state.regularisation == 0.0, 100.0, 8.0))
+            chol, ok = attempt(delta)
+            return delta, chol, ok
+
+        delta_w, chol, factored = jax.lax.while_loop(needs_more, grow, (state.forced, chol0, ok0))
+        matrix = regularised(delta_w)
+        dz, dt = linalg.solve(chol, *rhs)
+        # One step of iterative refinement: ρ JᵀJ makes the condensed matrix ill-conditioned.
+        hz, ht = linalg.matvec(*matrix, dz, dt)
+        ez, et = linalg.solve(chol, rhs[0] - hz, rhs[1] - ht)
+        dz, dt = (dz + ez) * (1 - fixed_z), (dt + et) * (1 - fixed_t)
+        Jdx = tuple(rows.apply(r, dz, dt) for r in J)
+        dy = tuple(w * (jd + sh) for w, jd, sh in zip(weights, Jdx, shifts))
+        ds = tuple((dv - r) * i for dv, r, i in zip(dy[2:], rx[2:], inv_sigma))
+        dP = (dz, dt) + ds
+        dzl = _tmap(lambda a, p, d, m: jnp.where(m, mu / a - p - p * d / a, 0.0), dl, zl, dP, bounds.has_lower)
+        dzu = _tmap(lambda b, q, d, m: jnp.where(m, mu / b - q + q * d / b, 0.0), du, zu, dP, bounds.has_upper)
+        alpha_max = _fraction_to_boundary(
+            dl + du, _tmap(lambda d, m: jnp.where(m, d, 0.0), dP, bounds.has_lower)
+            + _tmap(lambda d, m: jnp.where(m, -d, 0.0), dP, bounds.has_upper), tau)
+        alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
+
+        # Filter line search on (θ, φ) = (‖c‖₁, f + barrier), IPOPT's acceptance rules.
+        phi0 = cost_scale * stagewise.residuals(nlp, Z, theta).cost + _barrier(P, bounds, mu)
+        theta0_ = infeasibility(c)
+        slope = _dot((cost_scale * B.cost_z, cost_scale * B.cost_theta), dP[:2]) + _dot(bgrad, dP)
+
+        def trial(alpha):
+            Pt = _tmap(lambda p, d: p + alpha * d, P, dP)
+            f, ct, _ = evaluate(Pt)
+            return infeasibility(ct), f + _barrier(Pt, bounds, mu)
+
+        def acceptable(alpha, th, ph):
+            switching = (slope < 0) & (alpha * (-slope) ** 2.3 > theta0_**1.1) & (theta0_ <= theta_min)
+            armijo = ph <= phi0 + 1e-8 * alpha * slope
+            decrease = (th <= (1 - 1e-5) * theta0_) | (ph <= phi0 - 1e-8 * theta0_)
+            in_filter = jnp.any((th >= filter_theta) & (ph >= filter_phi))
+            ok = jnp.isfinite(th) & jnp.isfinite(ph) & ~in_filter & jnp.where(switching, armijo, decrease)
+            return ok, switching & armijo
+
+        def search(carry):
+            alpha, _, _, _, count = carry
+            alpha = alpha * 0.5
+            th, ph = trial(alpha)
+            ok, f_type = acceptable(alpha, th, ph)
+            return alpha, ok, f_type, jnp.stack([th, ph]), count + 1
+
+        def keep_searching(carry):
+            _, ok, _, _, count = carry
+            return (~ok) & (count < options.line_search_steps)
+
+        th1, ph1 = trial(alpha_max)
+        ok1, f1 = acceptable(alpha_max, th1, ph1)
+        alpha, accepted, f_type, _, _ = jax.lax.while_loop(
+            keep_searching, search, (alpha_max, ok1, f1, jnp.stack([th1, ph1]), jnp.asarray(0))
+        )
+        accepted = accepted & factored
+        step = jnp.where(accepted, alpha, 0.0)
+        P_new = _tmap(lambda p, d: p + step * d, P, dP)
+        y_new = _tmap(lambda v, d: v + step * d, y, dy)
+        zl_new = _tmap(lambda v, d: v + jnp.where(accepted, alpha_z, 0.0) * d, zl, dzl)
+        zu_new = _tmap(lambda v, d: v + jnp.where(accepted, alpha_z, 0.0) * d, zu, dzu)
+        # Keep the bound multipliers within a factor κ_Σ = 1e10 of μ / distance (IPOPT).
+        dl_new, du_new = _distances(P_new, bounds)
+        zl_new = _tmap(lambda z, a, m: jnp.where(m, jnp.clip(z, mu / (1e10 * a), 1e10 * mu / a), 0.0),
+                       zl_new, dl_new, bounds.has_lower)
+        zu_new = _tmap(lambda z, b, m: jnp.where(m, jnp.clip(z, mu / (1e10 * b), 1e10 * mu / b), 0.0),
+                       zu_new, du_new, bounds.has_upper)
+        # The filter grows after every accepted step that was not an Armijo (f-type) step.
+        grow_filter = accepted & ~f_type
+        slot = filter_count % FILTER_SIZE
+        filter_theta = jnp.where(grow_filter, filter_theta.at[slot].set((1 - 1e-5) * theta0_), filter_theta)
+        filter_phi = jnp.where(grow_filter, filter_phi.at[slot].set(phi0 - 1e-8 * theta0_), filter_phi)
+        filter_count = filter_count + grow_filter.astype(filter_count.dtype)
+        rejections = jnp.where(accepted, 0, state.rejections + 1)
+        v_new, _ = violation(nlp, P_new[0], P_new[1])
+        record = jnp.stack([
+            stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w,
+        ])
+        if options.progress is not None:
+            jax.debug.callback(options.progress, state.iterations, record)
+        status = jnp.where(
+            converged, int(Status.CONVERGED),
+            jnp.where(rejections >= options.max_rejections, int(Status.STALLED), int(Status.RUNNING)),
+        )
+        new = _State(
+            P=P_new, y=y_new, zl=zl_new, zu=zu_new, mu=mu,
+            regularisation=jnp.where(delta_w > 0, delta_w, state.regularisation),
+            # A rejected step is retried from a more heavily regularised (shorter, steeper) one.
+            forced=jnp.where(accepted, 0.0, jnp.maximum(delta_w * 100.0, 1e-4)),
+            filter_theta=filter_theta, filter_phi=filter_phi, filter_count=filter_count,
+            rejections=rejections, iterations=state.iterations + 1,
+            barrier_updates=state.barrier_updates + updates, status=status, violation=v_new,
+            stationarity=error0, history=state.history.at[state.iterations].set(record),
+        )
+        # Converged: keep the point where the test held, not the step taken from it.
+        new = jax.tree.map(lambda a, b: jnp.where(converged, b, a), new, dataclasses.replace(
+            state, status=status, stationarity=error0, iterations=state.iterations + 1,
+            history=state.history.at[state.iterations].set(record.at[4].set(0.0))))
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves((new.P, new.y, new.zl, new.zu))]))
+        new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
+        return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)),
+                                   iterations=state.iterations + 1)
+
+    def running(state):
+        return (state.status == int(Status.RUNNING)) & (state.iterations < options.max_iterations)
+
+    state = jax.lax.while_loop(running, body, state)
+    status = jnp.where(state.status == int(Status.RUNNING), int(Status.MAX_ITERATIONS), state.status)
+    Z, theta = state.P[0], state.P[1]
+    v, per_group = violation(nlp, Z, theta)
+    return Solution(
+        Z=Z, theta=theta,
+        multipliers=Multipliers(**{g: yi * s / cost_scale for g, yi, s in zip(GROUPS, state.y, row_scale)}),
+        status=status, objective=stagewise.residuals(nlp, Z, theta).cost, violation=v,
+        violation_per_group=per_group, stationarity=state.stationarity, iterations=state.iterations,
+        barrier_updates=state.barrier_updates, history=state.history,
+    )
