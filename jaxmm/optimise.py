@@ -1,5 +1,5 @@
-"""Solve a task: the task's stage-wise NLP handed to the augmented-Lagrangian solver, and the
-answer brought back as a trajectory in physical units.
+"""Solve a task: the task's stage-wise NLP handed to the interior-point solver, and the answer
+brought back as a trajectory in physical units.
 
 This is the public boundary where compilation happens: ``solve_task`` jit-compiles one solve per
 problem structure (robot, knot count, integration rule, options) and reuses it for every task of
@@ -11,7 +11,7 @@ import functools
 
 import jax
 
-from jaxmm.solver import augmented_lagrangian as al
+from jaxmm.solver import interior_point as ip
 from jaxmm.tasks import initial_guess
 from jaxmm.transcription import nlp as transcription
 from jaxmm.transcription.variables import Trajectory
@@ -21,24 +21,24 @@ from jaxmm.transcription.variables import Trajectory
 @dataclasses.dataclass(frozen=True)
 class TaskSolution:
     """A solved task: the optimal ``trajectory`` (physical units) and the solver's ``solution``
-    (scaled variables, multipliers, status, statistics, history; see ``al.Solution``)."""
+    (scaled variables, multipliers, status, statistics, history; see ``ip.Solution``)."""
 
     trajectory: Trajectory
-    solution: al.Solution
+    solution: ip.Solution
 
     @property
     def status(self):
-        return al.Status(int(self.solution.status))
+        return ip.Status(int(self.solution.status))
 
 
-DEFAULT_OPTIONS = al.Options(tolerance=1e-6, stationarity=1e-6)
+DEFAULT_OPTIONS = ip.Options()
 
 
 @functools.partial(jax.jit, static_argnames="options")
 def _solve(task, guess, options, multipliers):
     nlp = transcription.stagewise_nlp(task)
     Z0, theta0 = transcription.to_variables(task, guess)
-    solution = al.solve(nlp, Z0, theta0, options, multipliers)
+    solution = ip.solve(nlp, Z0, theta0, options, multipliers)
     return TaskSolution(transcription.to_trajectory(task, solution.Z, solution.theta), solution)
 
 

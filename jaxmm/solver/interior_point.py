@@ -78,7 +78,7 @@ class Options:
     stationarity: float = 1e-6
     max_iterations: int = 1000
     barrier0: float = 0.1
-    barrier_min: float = 1e-9
+    barrier_min: float = 1e-11
     barrier_factor: float = 0.2
     barrier_power: float = 1.5
     barrier_tolerance_factor: float = 10.0
@@ -86,6 +86,7 @@ class Options:
     line_search_steps: int = 30
     max_gradient: float = 100.0
     max_rejections: int = 15
+    bound_push: float = 1e-2
     progress: Callable | None = None
 
 
@@ -110,7 +111,9 @@ class Solution:
     """Result of a solve: the optimum (scaled NLP variables), multipliers, why it stopped and
     statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 6) has one row per
     iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected); rows past
-    ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations)."""
+    ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations).
+    ``bound_multipliers`` (lower, upper), each a tuple over (Z, θ, path slacks, transition
+    slacks) in the solver's scaling, are for warm starts."""
 
     Z: jax.Array
     theta: jax.Array
@@ -123,6 +126,7 @@ class Solution:
     iterations: jax.Array
     barrier_updates: jax.Array
     history: jax.Array
+    bound_multipliers: tuple
 
 
 def violation(nlp, Z, theta):
@@ -259,9 +263,10 @@ class _State:
 FILTER_SIZE = 128
 
 
-def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
-    """Minimise the stage-wise NLP from (Z0 (K, nz), θ0 (ng,)); warm-start the equality and
-    inequality multipliers with ``multipliers`` (a ``Multipliers``, e.g. a previous solution's).
+def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multipliers=None):
+    """Minimise the stage-wise NLP from (Z0 (K, nz), θ0 (ng,)); warm-start the constraint
+    multipliers with ``multipliers`` (a ``Multipliers``) and the bound multipliers with
+    ``bound_multipliers`` (both from a previous ``Solution``).
 
     Jittable and vmappable (options are static): ``jax.jit(solve, static_argnames="options")``.
     Returns a ``Solution``.
@@ -296,14 +301,16 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         return sum(jnp.sum(jnp.abs(v)) for v in c)
 
     r0 = stagewise.residuals(nlp, Z0, theta0)
-    P0 = _interior((Z0, theta0, r0.path_inequality * row_scale[2], r0.transition_inequality * row_scale[3]), bounds)
+    P0 = _interior((Z0, theta0, r0.path_inequality * row_scale[2], r0.transition_inequality * row_scale[3]), bounds,
+                   options.bound_push)
     if multipliers is None:
         y0 = tuple(jnp.zeros_like(s) for s in row_scale)
     else:
         y0 = tuple(cost_scale * getattr(multipliers, g) / s for g, s in zip(GROUPS, row_scale))
     ones = tuple(jnp.ones_like(p) for p in P0)
-    zl0 = _tmap(lambda o, m: jnp.where(m, o, 0.0), ones, bounds.has_lower)
-    zu0 = _tmap(lambda o, m: jnp.where(m, o, 0.0), ones, bounds.has_upper)
+    zl0, zu0 = (ones, ones) if bound_multipliers is None else bound_multipliers
+    zl0 = _tmap(lambda o, m: jnp.where(m, o, 0.0), zl0, bounds.has_lower)
+    zu0 = _tmap(lambda o, m: jnp.where(m, o, 0.0), zu0, bounds.has_upper)
     _, c0, _ = evaluate(P0)
     theta_max = 1e4 * jnp.maximum(1.0, infeasibility(c0))
     theta_min = 1e-4 * jnp.maximum(1.0, infeasibility(c0))
@@ -537,5 +544,5 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None):
         multipliers=Multipliers(**{g: yi * s / cost_scale for g, yi, s in zip(GROUPS, state.y, row_scale)}),
         status=status, objective=stagewise.residuals(nlp, Z, theta).cost, violation=v,
         violation_per_group=per_group, stationarity=state.stationarity, iterations=state.iterations,
-        barrier_updates=state.barrier_updates, history=state.history,
+        barrier_updates=state.barrier_updates, history=state.history, bound_multipliers=(state.zl, state.zu),
     )
