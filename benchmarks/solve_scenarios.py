@@ -1,4 +1,4 @@
-"""Solve the four published scenarios with the JAX augmented-Lagrangian solver
+"""Solve the four published scenarios with the JAX interior-point solver
 (``jaxmm.optimise.solve_task``) from the published initial guess, and optionally with the IPOPT
 reference (``jaxmm.reference.solve_ipopt``) from the same guess, in the same run.
 
@@ -14,9 +14,9 @@ What is measured (wall clock):
   compiled ahead of time, so there is no warm-up call. Also: the problem size (variables =
   (N + 1) knots × knot size + T_total; equality and inequality rows from the shapes of
   ``stagewise.residuals``, each inequality row two-sided with its own bounds, variable boxes
-  not counted), the outer and inner (Newton) iterations, the status, and
+  not counted), the barrier updates and Newton iterations, the status, and
   ``jaxmm.analysis.validate`` of the trajectory (its table is printed after the main table).
-  The default solver tolerance is 1e-6 on the scaled violation (``optimise.DEFAULT_OPTIONS``).
+  The default solver tolerance is 1e-6 on the violation (``optimise.DEFAULT_OPTIONS``).
 * --ipopt: ``solve_ipopt(task, urdf, guess, tol=1e-4)`` (the paper's tolerance, physical units;
   exact Hessian, MUMPS) on the same robot, read from ``jaxmm.assemble_urdf`` written to a
   temporary file; one call (no repeats): build time (``ReferenceNLP`` construction, ADAM
@@ -26,16 +26,16 @@ What is measured (wall clock):
   N = 70 takes about 10 minutes on the 2-core benchmark machine, the longer scenarios more.
 * For both sides, the objective and the max constraint violation of the returned trajectory are
   evaluated by the same jitted JAX function: ``stagewise.residuals(nlp, Z, θ).cost`` and
-  ``augmented_lagrangian.violation(nlp, Z, θ)[0]`` (scaled units: every constraint group and
+  ``interior_point.violation(nlp, Z, θ)[0]`` (the NLP's units: every constraint group and
   the variable boxes) after ``transcription.to_variables(task, trajectory)``.
-* --knots: time per inner iteration against N on take-off (default N = 60, 100, 200, 400): each N
-  compiled (compile time reported) and solved with a budget of 10 inner iterations (or
-  --max-iterations); (solve time / inner iterations) and that divided by N, which is constant if
+* --knots: time per iteration against N on take-off (default N = 60, 100, 200, 400): each N
+  compiled (compile time reported) and solved with a budget of 10 iterations (or
+  --max-iterations); (solve time / iterations) and that divided by N, which is constant if
   the cost of an iteration grows linearly with N. The per-iteration time includes the
   once-per-solve setup (first cost gradient, initial violation) and varies with the number of
   line-search trials. Given alone, --knots skips the scenario table; add --scenarios for both.
 
---max-iterations caps the inner iterations of our solver (``Options.max_iterations``) and
+--max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.
 
 Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
@@ -59,14 +59,14 @@ import jax  # noqa: E402
 import jaxmm  # noqa: E402  (enables float64)
 from machine import format_time, machine_lines  # noqa: E402
 from jaxmm import analysis, optimise, tasks  # noqa: E402
-from jaxmm.solver import augmented_lagrangian as al  # noqa: E402
+from jaxmm.solver import interior_point as ip  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
 from jaxmm.transcription import stagewise  # noqa: E402
 
 IPOPT_TOLERANCE = 1e-4  # the paper's IPOPT tol and constr_viol_tol (physical units)
 KNOT_SCENARIO = "take_off"
 KNOT_COUNTS = (60, 100, 200, 400)
-KNOT_BUDGET = 10  # inner iterations per solve of the --knots study
+KNOT_BUDGET = 10  # iterations per solve of the --knots study
 
 
 def log(message):
@@ -95,10 +95,10 @@ def sizes(task, guess):
 
 @jax.jit
 def measure(task, trajectory):
-    """(objective, max violation in scaled units) of a trajectory, whoever computed it."""
+    """(objective, max violation in the NLP units) of a trajectory, whoever computed it."""
     nlp = transcription.stagewise_nlp(task)
     Z, theta = transcription.to_variables(task, trajectory)
-    return stagewise.residuals(nlp, Z, theta).cost, al.violation(nlp, Z, theta)[0]
+    return stagewise.residuals(nlp, Z, theta).cost, ip.violation(nlp, Z, theta)[0]
 
 
 def solve_ours(task, guess, options, repeats):
@@ -137,7 +137,7 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter):
     objective, violation = (float(v) for v in measure(task, result.trajectory))
     row["ours"] = dict(
         compile=compile_time, solve=solve_time, objective=objective, violation=violation,
-        outer=int(result.solution.outer_iterations), inner=int(result.solution.inner_iterations),
+        outer=int(result.solution.barrier_updates), inner=int(result.solution.iterations),
         status=result.status.message, report=analysis.validate(task, result.trajectory),
     )  # fmt: skip
     if urdf_path is not None:
@@ -153,7 +153,7 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter):
 
 
 def scenario_table(rows):
-    header = ("scenario", "N", "variables", "equalities", "inequalities", "outer it.", "inner it.",
+    header = ("scenario", "N", "variables", "equalities", "inequalities", "μ updates", "iterations",
               "compile", "solve", "objective", "max violation", "status", "validate")  # fmt: skip
     lines = [
         (r["name"], r["N"], *r["sizes"], r["ours"]["outer"], r["ours"]["inner"], format_time(r["ours"]["compile"]),
@@ -194,15 +194,15 @@ def failed_lines(rows):
 
 
 def knot_study(counts, budget, repeats):
-    """One table row per N: compile, solve, inner iterations, per iteration, per iteration / N."""
+    """One table row per N: compile, solve, iterations, per iteration, per iteration / N."""
     options = dataclasses.replace(optimise.DEFAULT_OPTIONS, max_iterations=budget)
     lines, first = [], None
     for knots in counts:
         task = tasks.scenario(KNOT_SCENARIO, knots=knots)
         guess = tasks.initial_guess(task)
-        log(f"{KNOT_SCENARIO} N = {knots}: compiling (budget {budget} inner iterations)...")
+        log(f"{KNOT_SCENARIO} N = {knots}: compiling (budget {budget} iterations)...")
         compile_time, solve_time, result = solve_ours(task, guess, options, repeats)
-        inner = int(result.solution.inner_iterations)
+        inner = int(result.solution.iterations)
         per_iteration = solve_time / max(inner, 1)
         first = first or (knots, per_iteration)
         lines.append((
@@ -210,7 +210,7 @@ def knot_study(counts, budget, repeats):
             format_time(per_iteration), format_time(per_iteration / knots),
             f"{per_iteration / first[1]:.3g}× (N {knots / first[0]:.3g}×)", result.status.name.lower(),
         ))  # fmt: skip
-    header = ("N", "variables", "compile", "solve", "inner it.", "per iteration", "per iteration / N",
+    header = ("N", "variables", "compile", "solve", "iterations", "per iteration", "per iteration / N",
               "per iteration vs first row", "status")  # fmt: skip
     return render(header, lines)
 
@@ -222,9 +222,9 @@ def main():
     parser.add_argument("--knots-override", type=int, default=None, help="N for every scenario instead of the published one")
     parser.add_argument("--ipopt", action="store_true", help="also solve every scenario with IPOPT (slow)")
     parser.add_argument("--knots", nargs="?", const=",".join(map(str, KNOT_COUNTS)), default=None,
-                        help=f"time per inner iteration on {KNOT_SCENARIO} for these N (default {KNOT_COUNTS})")  # fmt: skip
+                        help=f"time per iteration on {KNOT_SCENARIO} for these N (default {KNOT_COUNTS})")  # fmt: skip
     parser.add_argument("--repeats", type=int, default=3, help="timed runs of our compiled solve (the median is reported)")
-    parser.add_argument("--max-iterations", type=int, default=None, help="inner-iteration limit of both solvers")
+    parser.add_argument("--max-iterations", type=int, default=None, help="iteration limit of both solvers")
     args = parser.parse_args()
 
     run_scenarios = args.scenarios is not None or args.knots is None
@@ -259,9 +259,9 @@ def main():
     if rows:
         print(
             f"Scenarios from the published initial guess, {'N = ' + str(args.knots_override) if args.knots_override else 'published N'}; "
-            f"our solver: tolerance {options.tolerance:g} (scaled violation), stationarity {options.stationarity:g}, "
-            f"max {options.max_iterations} inner iterations; solve = median of {args.repeats} runs of the compiled solve; "
-            "objective and max violation (scaled units) of the returned trajectory by the same JAX function for both sides"
+            f"our solver: tolerance {options.tolerance:g} (violation), stationarity {options.stationarity:g}, "
+            f"max {options.max_iterations} iterations; solve = median of {args.repeats} runs of the compiled solve; "
+            "objective and max violation (NLP units) of the returned trajectory by the same JAX function for both sides"
         )
         print()
         print(scenario_table(rows))
@@ -284,8 +284,8 @@ def main():
                     print(r[side]["report"])
     if knot_table is not None:
         print()
-        print(f"Time per inner iteration on {KNOT_SCENARIO} against N, budget {args.max_iterations or KNOT_BUDGET} "
-              f"inner iterations from the published guess; solve = median of {args.repeats} runs")  # fmt: skip
+        print(f"Time per iteration on {KNOT_SCENARIO} against N, budget {args.max_iterations or KNOT_BUDGET} "
+              f"iterations from the published guess; solve = median of {args.repeats} runs")  # fmt: skip
         print()
         print(knot_table)
     print()
