@@ -8,7 +8,7 @@ given, started from ``tasks.initial_guess``.
 
 What is measured (wall clock):
 
-* ours: compile time = ``jaxmm.optimise._solve.lower(task, guess, options, None).compile()``
+* ours: compile time = ``jaxmm.optimise._solve.lower(task, guess, options, None, None).compile()``
   (tracing, lowering and XLA compilation of the whole solve, one ``lax.while_loop``); solve time
   = median over --repeats calls of the compiled executable (``jax.block_until_ready``); it is
   compiled ahead of time, so there is no warm-up call. Also: the problem size (variables =
@@ -103,10 +103,10 @@ def measure(task, trajectory):
 
 def solve_ours(task, guess, options, repeats):
     """(compile seconds, median solve seconds, TaskSolution) of the compiled solve."""
-    compiled, compile_time = timed(lambda: optimise._solve.lower(task, guess, options, None).compile())
+    compiled, compile_time = timed(lambda: optimise._solve.lower(task, guess, options, None, None).compile())
     times, result = [], None
     for _ in range(repeats):
-        result, seconds = timed(lambda: jax.block_until_ready(compiled(task, guess, None)))
+        result, seconds = timed(lambda: jax.block_until_ready(compiled(task, guess, None, None)))
         times.append(seconds)
     return compile_time, statistics.median(times), result
 

@@ -75,3 +75,15 @@ def test_an_infeasible_take_off_is_reported_with_finite_numbers():
     leaves = jax.tree.leaves((result.trajectory, result.solution.Z, result.solution.multipliers))
     assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
     assert np.isfinite(float(result.solution.objective))
+
+
+def test_warm_start_from_the_solution_of_a_neighbouring_task(take_off):
+    """A target 2 cm lower, started from the take-off's solution and multipliers."""
+    _, cold = take_off
+    neighbour = tasks.scenario("take_off", **REDUCED_TAKE_OFF, final_com=(0.0, 0.0, 0.78))
+    warm = solve_task(neighbour, warm_start=cold)
+    assert warm.status is ip.Status.CONVERGED, warm.status.message
+    assert int(warm.solution.iterations) < int(cold.solution.iterations) / 2
+    report = analysis.validate(neighbour, warm.trajectory)
+    assert report.ok, str(report)
+    print(f"warm start: {int(warm.solution.iterations)} iterations (cold: {int(cold.solution.iterations)})")

@@ -66,8 +66,9 @@ class Options:
     """Solver settings (static).
 
     tolerance: max constraint violation (the NLP's own units: |c|, distance of g to [l, u]);
-    stationarity: scaled dual infeasibility and complementarity (IPOPT's E₀ without the
-    violation); max_iterations: Newton iterations; barrier0, barrier_min: first and last barrier
+    100× tighter than the paper's IPOPT ``constr_viol_tol``; stationarity: scaled dual
+    infeasibility and complementarity (IPOPT's E₀ without the violation), the paper's IPOPT
+    ``tol``; max_iterations: Newton iterations; barrier0, barrier_min: first and last barrier
     parameter μ; barrier_factor, barrier_power: μ ← min(factor μ, μ^power) once the barrier
     problem is solved to barrier_tolerance_factor × μ; dual_regularisation: δ = 1/ρ of the
     equality rows; line_search_steps: backtracking halvings; max_gradient: scaling target;
@@ -78,8 +79,8 @@ class Options:
     """
 
     tolerance: float = 1e-6
-    stationarity: float = 1e-6
-    max_iterations: int = 1000
+    stationarity: float = 1e-4
+    max_iterations: int = 1500
     barrier0: float = 0.1
     barrier_min: float = 1e-11
     barrier_factor: float = 0.2
