@@ -10,21 +10,25 @@ import dataclasses
 import functools
 
 import jax
+import jax.numpy as jnp
 
 from jaxmm.solver import interior_point as ip
 from jaxmm.tasks import initial_guess
 from jaxmm.transcription import nlp as transcription
+from jaxmm.transcription import stagewise
 from jaxmm.transcription.variables import Trajectory
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class TaskSolution:
-    """A solved task: the optimal ``trajectory`` (physical units) and the solver's ``solution``
-    (scaled variables, multipliers, status, statistics, history; see ``ip.Solution``)."""
+    """A solved task: the optimal ``trajectory`` (physical units), the solver's ``solution``
+    (scaled variables, multipliers, status, statistics, history; see ``ip.Solution``) and the
+    largest violation of each constraint family (``{family: ()}``, docs/formulation.md's names)."""
 
     trajectory: Trajectory
     solution: ip.Solution
+    violation_per_family: dict
 
     @property
     def status(self):
@@ -43,7 +47,14 @@ def _solve(task, guess, options, multipliers, bound_multipliers):
     nlp = transcription.stagewise_nlp(task)
     Z0, theta0 = transcription.to_variables(task, guess)
     solution = ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers)
-    return TaskSolution(transcription.to_trajectory(task, solution.Z, solution.theta), solution)
+    r = stagewise.residuals(nlp, solution.Z, solution.theta)
+    outside = dataclasses.replace(
+        r, path_equality=jnp.abs(r.path_equality), transition_equality=jnp.abs(r.transition_equality),
+        path_inequality=ip.outside(r.path_inequality, nlp.path_lower, nlp.path_upper),
+        transition_inequality=ip.outside(r.transition_inequality, nlp.transition_lower, nlp.transition_upper),
+    )
+    families = {name: jnp.max(v, initial=0.0) for name, v in transcription.split_families(task, outside).items()}
+    return TaskSolution(transcription.to_trajectory(task, solution.Z, solution.theta), solution, families)
 
 
 def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):

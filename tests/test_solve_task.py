@@ -33,6 +33,9 @@ def test_reduced_take_off_converges_and_passes_validate(take_off):
     report = analysis.validate(task, result.trajectory)
     assert report.ok, str(report)
     assert float(result.solution.violation) <= 1e-6
+    assert set(result.violation_per_family) == {c.name.removeprefix("constraint ") for c in report.checks
+                                                if c.name.startswith("constraint ")}
+    assert max(float(v) for v in result.violation_per_family.values()) <= 1e-6
     # It is a take-off: the last knots are airborne and the jets hold the weight there.
     assert report.flight_knots and report.flight_knots[-1] == task.n_knots - 1, str(report)
     weight = float(jaxmm.total_mass(task.robot.model)) * 9.81

@@ -139,16 +139,17 @@ def violation(nlp, Z, theta):
     groups = dict(
         path_equality=jnp.abs(r.path_equality),
         transition_equality=jnp.abs(r.transition_equality),
-        path_inequality=_outside(r.path_inequality, nlp.path_lower, nlp.path_upper),
-        transition_inequality=_outside(r.transition_inequality, nlp.transition_lower, nlp.transition_upper),
-        z_box=_outside(Z, nlp.z_lower, nlp.z_upper),
-        theta_box=_outside(theta, nlp.theta_lower, nlp.theta_upper),
+        path_inequality=outside(r.path_inequality, nlp.path_lower, nlp.path_upper),
+        transition_inequality=outside(r.transition_inequality, nlp.transition_lower, nlp.transition_upper),
+        z_box=outside(Z, nlp.z_lower, nlp.z_upper),
+        theta_box=outside(theta, nlp.theta_lower, nlp.theta_upper),
     )
     per_group = {k: jnp.max(v, initial=0.0) for k, v in groups.items()}
     return jnp.max(jnp.stack(list(per_group.values()))), per_group
 
 
-def _outside(value, lower, upper):
+def outside(value, lower, upper):
+    """Distance of value to [lower, upper] (0 inside)."""
     return jnp.maximum(jnp.maximum(lower - value, value - upper), 0.0)
 
 
