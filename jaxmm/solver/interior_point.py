@@ -457,7 +457,8 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
 
         # Filter line search on (θ, φ) = (‖c‖₁, f + barrier), IPOPT's acceptance rules.
-        phi0 = cost_scale * stagewise.residuals(nlp, Z, theta).cost + _barrier(P, bounds, mu)
+        cost_now = stagewise.residuals(nlp, Z, theta).cost
+        phi0 = cost_scale * cost_now + _barrier(P, bounds, mu)
         theta0_ = infeasibility(c)
         slope = _dot((cost_scale * B.cost_z, cost_scale * B.cost_theta), dP[:2]) + _dot(bgrad, dP)
 
@@ -533,7 +534,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         # Converged: keep the point where the test held, not the step taken from it.
         new = jax.tree.map(lambda a, b: jnp.where(converged, b, a), new, dataclasses.replace(
             state, status=status, stationarity=error0, iterations=state.iterations + 1,
-            history=state.history.at[state.iterations].set(record.at[4].set(0.0))))
+            history=state.history.at[state.iterations].set(jnp.stack([cost_now, v_now, error0, mu, 0.0, delta_w]))))
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves((new.P, new.y, new.zl, new.zu))]))
         new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
         return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)),
