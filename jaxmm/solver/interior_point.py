@@ -338,10 +338,9 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         P, y, zl, zu = state.P, state.y, state.zl, state.zu
         Z, theta = P[0], P[1]
         B = stagewise.blocks(nlp, Z, theta)
-        _, c, _ = evaluate(P)
+        _, c, r_now = evaluate(P)
         J = tuple(_scaled_rows(_group_rows(B, g), s) for g, s in zip(GROUPS, row_scale))
-        J = J[:2] + tuple(rows.Rows(*(None if j is None else j * a[..., None] for j in (r.jz, r.jt, r.jn)))
-                          for r, a in zip(J[2:], active))
+        J = J[:2] + tuple(_scaled_rows(r, a) for r, a in zip(J[2:], active))
         # Gradient of the Lagrangian f + yᵀc (bounds apart), per primal leaf.
         gz, gt = cost_scale * B.cost_z, cost_scale * B.cost_theta
         for r, yi in zip(J, y):
@@ -458,7 +457,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
 
         # Filter line search on (θ, φ) = (‖c‖₁, f + barrier), IPOPT's acceptance rules.
-        cost_now = stagewise.residuals(nlp, Z, theta).cost
+        cost_now = r_now.cost
         phi0 = cost_scale * cost_now + _barrier(P, bounds, mu)
         theta0_ = infeasibility(c)
         slope = _dot((cost_scale * B.cost_z, cost_scale * B.cost_theta), dP[:2]) + _dot(bgrad, dP)
