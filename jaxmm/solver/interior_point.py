@@ -17,7 +17,9 @@ matrix W + Σ + δ_w I + ρ JᵀJ (the slacks are eliminated row by row). Its in
 exactly when its block Cholesky succeeds, which makes the factorisation the inertia test;
 δ_w grows until it does. W is the exact Hessian of the Lagrangian (cost Hessian plus the
 constraints' curvature at λ). Every linear system is bordered block-tridiagonal and solved by
-``linalg`` (block Cholesky in ``lax.scan``, Schur complement for the globals), refined once.
+``linalg`` (block Cholesky in ``lax.scan``, Schur complement for the globals); each step is then
+refined towards the exact (δ = 0) KKT system, with the regularised factor as preconditioner.
+When the full step increases the infeasibility, IPOPT's second-order corrections are tried.
 
 Rows and the cost are scaled at the starting point as IPOPT's gradient-based scaling does
 (no row or cost gradient above 100). The whole solve is one ``lax.while_loop``: it can be
@@ -266,6 +268,8 @@ class _State:
 
 
 FILTER_SIZE = 128
+REFINEMENT_STEPS = 10  # most refinements of a step towards the exact KKT system (while the residual falls)
+SOC_STEPS = 4  # second-order corrections per iteration (IPOPT's max_soc)
 
 
 def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multipliers=None):
@@ -393,21 +397,14 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         # Fixed slacks (equal bounds) and rows without bounds have σ = 0: their 1/σ is 0.
         inv_sigma = tuple(jnp.where(s > 0, 1.0 / jnp.where(s > 0, s, 1.0), 0.0) for s in sigma[2:])
         weight_g = tuple(jnp.where(a, 1.0 / (i + delta_c), 0.0) for i, a in zip(inv_sigma, active))
-        shift_g = tuple(cg + r * i for cg, r, i in zip(c[2:], rx[2:], inv_sigma))
         weights = (jnp.full_like(c[0], 1.0 / delta_c), jnp.full_like(c[1], 1.0 / delta_c)) + weight_g
-        shifts = (c[0], c[1]) + shift_g
-        hessian = rows.add(
+        lagrangian = rows.add(
             tuple(cost_scale * b for b in (B.cost_zz, jnp.zeros_like(B.cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta)),
             stagewise.constraint_curvature(nlp, Z, theta, *(yi * s for yi, s in zip(y, row_scale))),
-            *(rows.gram(r, w, K) for r, w in zip(J, weights)),
         )
-        rhs_z, rhs_t = -rx[0], -rx[1]
-        for r, w, sh in zip(J, weights, shifts):
-            pz, pt = rows.pull(r, w * sh, K)
-            rhs_z, rhs_t = rhs_z - pz, rhs_t - pt
-        rhs = (rhs_z * (1 - fixed_z), rhs_t * (1 - fixed_t))
+        condensed = rows.add(lagrangian, *(rows.gram(r, w, K) for r, w in zip(J, weights)))
 
-        def regularised(delta):
+        def regularised(hessian, delta):
             D, L, Bd, C = hessian
             fz, ft = 1 - fixed_z, 1 - fixed_t
             return (
@@ -421,7 +418,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         # ×8. (Starting from that third directly saves a factorisation but keeps the steps
         # damped: take-off N = 70 took 636 iterations instead of 435.)
         def attempt(delta):
-            chol = linalg.factor(*regularised(delta))
+            chol = linalg.factor(*regularised(condensed, delta))
             return chol, chol.ok
 
         chol0, ok0 = attempt(state.forced)
@@ -439,22 +436,72 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
             return delta, chol, ok
 
         delta_w, chol, factored = jax.lax.while_loop(needs_more, grow, (state.forced, chol0, ok0))
-        matrix = regularised(delta_w)
-        dz, dt = linalg.solve(chol, *rhs)
-        # One step of iterative refinement: ρ JᵀJ makes the condensed matrix ill-conditioned.
-        hz, ht = linalg.matvec(*matrix, dz, dt)
-        ez, et = linalg.solve(chol, rhs[0] - hz, rhs[1] - ht)
-        dz, dt = (dz + ez) * (1 - fixed_z), (dt + et) * (1 - fixed_t)
-        Jdx = tuple(rows.apply(r, dz, dt) for r in J)
-        dy = tuple(w * (jd + sh) for w, jd, sh in zip(weights, Jdx, shifts))
-        ds = tuple((dv - r) * i for dv, r, i in zip(dy[2:], rx[2:], inv_sigma))
-        dP = (dz, dt) + ds
-        dzl = _tmap(lambda a, p, d, m: jnp.where(m, mu / a - p - p * d / a, 0.0), dl, zl, dP, bounds.has_lower)
-        dzu = _tmap(lambda b, q, d, m: jnp.where(m, mu / b - q + q * d / b, 0.0), du, zu, dP, bounds.has_upper)
-        alpha_max = _fraction_to_boundary(
-            dl + du, _tmap(lambda d, m: jnp.where(m, d, 0.0), dP, bounds.has_lower)
-            + _tmap(lambda d, m: jnp.where(m, -d, 0.0), dP, bounds.has_upper), tau)
-        alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
+        hessian = regularised(lagrangian, delta_w)
+        fz, ft = 1 - fixed_z, 1 - fixed_t
+
+        def kkt_solve(ax, a_s, a_c):
+            """The regularised (δ_c) KKT system with right-hand sides ax (dual rows of (Z, θ)),
+            a_s (dual rows of the slacks) and a_c (constraint rows), by condensing onto the
+            block-tridiagonal factor: returns (dx, ds, dy)."""
+            shifts = a_c[:2] + tuple(ag + a * i for ag, a, i in zip(a_c[2:], a_s, inv_sigma))
+            rz, rt = ax
+            for r, w, sh in zip(J, weights, shifts):
+                pz, pt = rows.pull(r, w * sh, K)
+                rz, rt = rz + pz, rt + pt
+            dz, dt = linalg.solve(chol, rz * fz, rt * ft)
+            dz, dt = dz * fz, dt * ft
+            dy = tuple(w * (rows.apply(r, dz, dt) - sh) for r, w, sh in zip(J, weights, shifts))
+            ds = tuple((a + dv) * i for a, dv, i in zip(a_s, dy[2:], inv_sigma))
+            return (dz, dt), ds, dy
+
+        def kkt_residual(ax, a_s, a_c, dx, ds, dy):
+            """Residual of the exact KKT system (δ_c = 0) at the step (dx, ds, dy)."""
+            hz, ht = linalg.matvec(*hessian, *dx)
+            for r, dv in zip(J, dy):
+                pz, pt = rows.pull(r, dv, K)
+                hz, ht = hz + pz, ht + pt
+            Jdx = tuple(rows.apply(r, *dx) for r in J)
+            return (
+                ((ax[0] - hz) * fz, (ax[1] - ht) * ft),
+                tuple(jnp.where(i > 0, a - (sg * d - dv), 0.0) for a, sg, d, dv, i in zip(a_s, sigma[2:], ds, dy[2:], inv_sigma)),
+                tuple(a - jd for a, jd in zip(a_c[:2], Jdx[:2]))
+                + tuple(jnp.where(act, a - (jd - d), 0.0) for a, jd, d, act in zip(a_c[2:], Jdx[2:], ds, active)),
+            )
+
+        def direction(cq):
+            """Newton step (primal, multipliers, bound multipliers, their fraction-to-boundary
+            lengths) for the scaled equality residuals cq: the iterate's own, or a second-order
+            correction's. The regularised solve is refined towards the exact KKT system
+            (δ_c = 0): ρ JᵀJ makes the condensed matrix ill-conditioned, and δ_c alone biases
+            the step enough to make the last iterations converge only linearly."""
+            a = ((-rx[0], -rx[1]), (-rx[2], -rx[3]), tuple(-v for v in cq))
+            floor = 1e-14 * jnp.maximum(1.0, _max_abs(jax.tree.leaves(a)))
+
+            def improving(carry):
+                k, _, _, size, previous = carry
+                return (k < REFINEMENT_STEPS) & (size > floor) & (size < 0.9 * previous)
+
+            def refine(carry):
+                k, step, residual, size, _ = carry
+                step = jax.tree.map(jnp.add, step, kkt_solve(*residual))
+                residual = kkt_residual(*a, *step)
+                return k + 1, step, residual, _max_abs(jax.tree.leaves(residual)), size
+
+            step = kkt_solve(*a)
+            residual = kkt_residual(*a, *step)
+            _, (dx, ds, dy), _, _, _ = jax.lax.while_loop(
+                improving, refine, (0, step, residual, _max_abs(jax.tree.leaves(residual)), jnp.asarray(jnp.inf, dtype)))
+            dP = dx + ds
+            dzl = _tmap(lambda a, p, d, m: jnp.where(m, mu / a - p - p * d / a, 0.0), dl, zl, dP, bounds.has_lower)
+            dzu = _tmap(lambda b, q, d, m: jnp.where(m, mu / b - q + q * d / b, 0.0), du, zu, dP, bounds.has_upper)
+            alpha_max = _fraction_to_boundary(
+                dl + du, _tmap(lambda d, m: jnp.where(m, d, 0.0), dP, bounds.has_lower)
+                + _tmap(lambda d, m: jnp.where(m, -d, 0.0), dP, bounds.has_upper), tau)
+            alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
+            return (dP, dy, dzl, dzu), alpha_max, alpha_z
+
+        newton, alpha_max, alpha_z = direction(c)
+        dP = newton[0]
 
         # Filter line search on (θ, φ) = (‖c‖₁, f + barrier), IPOPT's acceptance rules.
         cost_now = r_now.cost
@@ -462,10 +509,10 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         theta0_ = infeasibility(c)
         slope = _dot((cost_scale * B.cost_z, cost_scale * B.cost_theta), dP[:2]) + _dot(bgrad, dP)
 
-        def trial(alpha):
+        def trial(alpha, dP):
             Pt = _tmap(lambda p, d: p + alpha * d, P, dP)
             f, ct, _ = evaluate(Pt)
-            return infeasibility(ct), f + _barrier(Pt, bounds, mu)
+            return infeasibility(ct), f + _barrier(Pt, bounds, mu), ct
 
         def acceptable(alpha, th, ph):
             switching = (slope < 0) & (alpha * (-slope) ** 2.3 > theta0_**1.1) & (theta0_ <= theta_min)
@@ -475,22 +522,50 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
             ok = jnp.isfinite(th) & jnp.isfinite(ph) & ~in_filter & jnp.where(switching, armijo, decrease)
             return ok, switching & armijo
 
+        th1, ph1, c1 = trial(alpha_max, dP)
+        ok1, f1 = acceptable(alpha_max, th1, ph1)
+
+        # Second-order corrections (IPOPT): when the full step raises the infeasibility, re-solve
+        # with the constraint residual of the trial point folded in, up to SOC_STEPS times while
+        # each correction cuts the infeasibility by κ_soc = 0.99. Judged with the full step's α.
+        def correcting(carry):
+            k, ok, _, th, th_old, _, _, _, _, _ = carry
+            return (~ok) & (k < SOC_STEPS) & ((k == 0) | (th <= 0.99 * th_old))
+
+        def correct(carry):
+            k, _, _, th, _, c_soc, alpha_soc, c_trial, _, _ = carry
+            c_soc = _tmap(lambda a, b: alpha_soc * a + b, c_soc, c_trial)
+            step, alpha_soc, alpha_z_soc = direction(c_soc)
+            th_soc, ph_soc, c_trial = trial(alpha_soc, step[0])
+            ok, f_type = acceptable(alpha_max, th_soc, ph_soc)
+            return k + 1, ok, f_type, th_soc, th, c_soc, alpha_soc, c_trial, step, alpha_z_soc
+
+        try_soc = (~ok1) & (th1 >= theta0_) & factored
+        _, soc_ok, soc_f, _, _, _, alpha_soc, _, soc_step, alpha_z_soc = jax.lax.while_loop(
+            correcting, correct,
+            (jnp.where(try_soc, 0, SOC_STEPS), jnp.asarray(False), jnp.asarray(False), th1, th1, c, alpha_max, c1,
+             newton, alpha_z),
+        )
+
         def search(carry):
-            alpha, _, _, _, count = carry
+            alpha, _, _, count = carry
             alpha = alpha * 0.5
-            th, ph = trial(alpha)
+            th, ph, _ = trial(alpha, dP)
             ok, f_type = acceptable(alpha, th, ph)
-            return alpha, ok, f_type, jnp.stack([th, ph]), count + 1
+            return alpha, ok, f_type, count + 1
 
         def keep_searching(carry):
-            _, ok, _, _, count = carry
+            _, ok, _, count = carry
             return (~ok) & (count < options.line_search_steps)
 
-        th1, ph1 = trial(alpha_max)
-        ok1, f1 = acceptable(alpha_max, th1, ph1)
-        alpha, accepted, f_type, _, _ = jax.lax.while_loop(
-            keep_searching, search, (alpha_max, ok1, f1, jnp.stack([th1, ph1]), jnp.asarray(0))
+        alpha, accepted, f_type, _ = jax.lax.while_loop(
+            keep_searching, search, (alpha_max, ok1 | soc_ok, f1, jnp.where(soc_ok, options.line_search_steps, 0))
         )
+        # The corrected step, when one was accepted, replaces the Newton step (duals included).
+        dP, dy, dzl, dzu = jax.tree.map(lambda a, b: jnp.where(soc_ok, a, b), soc_step, newton)
+        alpha = jnp.where(soc_ok, alpha_soc, alpha)
+        alpha_z = jnp.where(soc_ok, alpha_z_soc, alpha_z)
+        f_type = jnp.where(soc_ok, soc_f, f_type)
         accepted = accepted & factored
         step = jnp.where(accepted, alpha, 0.0)
         P_new = _tmap(lambda p, d: p + step * d, P, dP)
