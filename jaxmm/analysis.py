@@ -63,6 +63,19 @@ def _outside(value, lower, upper):
     return np.maximum(np.maximum(np.asarray(lower) - value, value - np.asarray(upper)), 0.0)
 
 
+def airborne_corners(trajectory, contact_height=0.01):
+    """(N + 1, nc) bool: True where a contact corner is off the ground at a knot, that is higher
+    than contact_height [m]. The contact schedule of a trajectory, as ``validate`` sees it. A
+    batched trajectory (leaves (B, N + 1, ...)) gives (B, N + 1, nc)."""
+    return np.asarray(trajectory.knots.contact_points[..., 2]) > contact_height
+
+
+def flight_knots(airborne):
+    """The knots (a tuple of ints) at which every contact corner is off the ground, from the
+    (N + 1, nc) mask of ``airborne_corners``."""
+    return tuple(int(k) for k in np.flatnonzero(airborne.all(axis=1)))
+
+
 def resimulate_com(task, trajectory):
     """CoM trajectory re-integrated from the contact forces and thrusts alone (eq. 13, 24).
 
@@ -121,9 +134,8 @@ def validate(task, trajectory, *, tolerance=1e-4, contact_height=0.01, flight_fo
         middle = task.n_intervals // 2
         checks.append(Check("mid-horizon CoM height", float(max(params.mid_com_height - com[middle, 2], 0.0)), tolerance))
 
-    heights = np.asarray(knots.contact_points[..., 2])
     vertical = np.asarray(knots.contact_forces[..., 2])
-    airborne = heights > contact_height
+    airborne = airborne_corners(trajectory, contact_height)
     force_in_air = float(np.where(airborne, np.abs(vertical), 0.0).max(initial=0.0))
     checks.append(Check("no force on corners off the ground", force_in_air, flight_force,
                         f"corners above {contact_height} m; max slack ε_n {float(np.max(knots.normal_slack, initial=0.0)):.3g}"))
@@ -135,5 +147,4 @@ def validate(task, trajectory, *, tolerance=1e-4, contact_height=0.01, flight_fo
 
     resimulated = resimulate_com(task, trajectory)
     checks.append(Check("re-simulated CoM", float(np.abs(resimulated - com).max()), resimulation_tolerance, "metres"))
-    flight = tuple(int(k) for k in np.flatnonzero(airborne.all(axis=1)))
-    return ValidationReport(checks=tuple(checks), flight_knots=flight, resimulated_com=resimulated)
+    return ValidationReport(checks=tuple(checks), flight_knots=flight_knots(airborne), resimulated_com=resimulated)

@@ -42,11 +42,8 @@ DEFAULT_OPTIONS = ip.Options()
 WARM_START = dict(barrier0=1e-6, bound_push=1e-6)
 
 
-@functools.partial(jax.jit, static_argnames="options")
-def _solve(task, guess, options, multipliers, bound_multipliers):
-    nlp = transcription.stagewise_nlp(task)
-    Z0, theta0 = transcription.to_variables(task, guess)
-    solution = ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers)
+def task_solution(task, nlp, solution):
+    """The ``TaskSolution`` of ``task`` for a ``Solution`` of its stage-wise ``nlp``."""
     r = stagewise.residuals(nlp, solution.Z, solution.theta)
     outside = dataclasses.replace(
         r, path_equality=jnp.abs(r.path_equality), transition_equality=jnp.abs(r.transition_equality),
@@ -55,6 +52,13 @@ def _solve(task, guess, options, multipliers, bound_multipliers):
     )
     families = {name: jnp.max(v, initial=0.0) for name, v in transcription.split_families(task, outside).items()}
     return TaskSolution(transcription.to_trajectory(task, solution.Z, solution.theta), solution, families)
+
+
+@functools.partial(jax.jit, static_argnames="options")
+def _solve(task, guess, options, multipliers, bound_multipliers):
+    nlp = transcription.stagewise_nlp(task)
+    Z0, theta0 = transcription.to_variables(task, guess)
+    return task_solution(task, nlp, ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers))
 
 
 def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):

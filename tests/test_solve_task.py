@@ -20,15 +20,14 @@ from jaxmm.optimise import solve_task
 from jaxmm.solver import interior_point as ip
 from jaxmm.transcription import nlp as transcription
 
-REDUCED_TAKE_OFF = dict(knots=14, min_dt=0.25, max_dt=0.5)
+from conftest import REDUCED_TAKE_OFF
 REDUCED_JUMPING = dict(knots=15, min_dt=0.2, max_dt=0.4)
 COMPARABLE = 1e-3  # relative objective difference
 
 
 @pytest.fixture(scope="module")
-def take_off():
-    task = tasks.scenario("take_off", **REDUCED_TAKE_OFF)
-    return task, solve_task(task)
+def take_off(solved_take_off):
+    return solved_take_off
 
 
 def test_reduced_take_off_converges_and_passes_validate(take_off):

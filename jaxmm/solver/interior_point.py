@@ -119,7 +119,10 @@ class Solution:
     iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected); rows past
     ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations).
     ``bound_multipliers`` (lower, upper), each a tuple over (Z, θ, path slacks, transition
-    slacks) in the solver's scaling, are for warm starts."""
+    slacks) in the solver's scaling, are for warm starts. ``slacks`` (path, transition): the
+    inequality rows' slacks, scaled by the row factors; ``scaling`` = (cost factor (), per-row
+    factors of the four groups): the solver minimised cost factor × f subject to row factor ×
+    c. Both let ``sensitivity`` rebuild the barrier terms in the NLP's units."""
 
     Z: jax.Array
     theta: jax.Array
@@ -133,6 +136,8 @@ class Solution:
     barrier_updates: jax.Array
     history: jax.Array
     bound_multipliers: tuple
+    slacks: tuple
+    scaling: tuple
 
 
 def violation(nlp, Z, theta):
@@ -628,4 +633,5 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         status=status, objective=stagewise.residuals(nlp, Z, theta).cost, violation=v,
         violation_per_group=per_group, stationarity=state.stationarity, iterations=state.iterations,
         barrier_updates=state.barrier_updates, history=state.history, bound_multipliers=(state.zl, state.zu),
+        slacks=(state.P[2], state.P[3]), scaling=(cost_scale, row_scale),
     )

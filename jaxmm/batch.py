@@ -1,0 +1,440 @@
+"""Batched solves: many initial guesses (multi-start) or many tasks of one structure in a single
+jit-compiled ``jax.vmap`` of the solve, perturbed initial guesses, and a summary that ranks the
+answers and groups them by contact schedule.
+
+The interior-point solve is one ``lax.while_loop``; under ``vmap`` it keeps iterating while any
+instance runs and an instance that has stopped keeps its final state (JAX selects the old carry
+for it), so the answers are those of separate solves, up to rounding: batched and unbatched XLA
+kernels round differently (1e-16 at the first iteration), which a nonconvex solve can amplify
+over hundreds of iterations into a few iterations more or less and a different point within the
+solver's tolerance. The batch costs as many iterations as its slowest instance, each as dear as
+one iteration of every instance, stopped ones included; and the solver's inner loops (inertia
+correction, line search) run, under ``vmap``, as long as any instance needs them: an instance
+that stopped on a NaN (its factorisation fails up to δ_w = 1e40) or on rejected steps (the line
+search runs to its limit) makes every later iteration of the batch dearer.
+
+A batch is any pytree with a leading batch axis on every leaf: guesses are a ``Trajectory`` of
+leaves (B, N + 1, ...) and total time (B,); tasks a ``Task`` whose array leaves (targets,
+weights, bounds, the model's numbers) are (B, ...), with its static structure (robot topology,
+knot count, options) shared; the answer a ``TaskSolution`` with every leaf (B, ...). A
+multi-start batch broadcasts its task, so multi-start and multi-task batches of one size share
+one compilation.
+"""
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmm import analysis, optimise
+from jaxmm.solver import interior_point as ip
+from jaxmm.tasks import initial_guess
+from jaxmm.transcription.constraints import variable_bounds
+from jaxmm.transcription.problem import Task
+from jaxmm.transcription.variables import Trajectory
+
+# ----------------------------------------------------------------------------------- batches
+
+
+def _static_differences(a, b, path):
+    """The static (compile-time) fields in which two pytrees of dataclasses differ, as
+    "path: value vs value" strings."""
+    if not (dataclasses.is_dataclass(a) or dataclasses.is_dataclass(b)):
+        return []  # array leaves: their values may differ
+    if type(a) is not type(b):
+        return [f"{path}: {type(a).__name__} vs {type(b).__name__}"]
+    found = []
+    for field in dataclasses.fields(a):
+        x, y = getattr(a, field.name), getattr(b, field.name)
+        here = f"{path}.{field.name}"
+        if field.metadata.get("static", False):
+            if x != y:
+                shown = (repr(x), repr(y))
+                found.append(f"{here}: " + (" vs ".join(shown) if max(map(len, shown)) <= 60 else "differs"))
+        else:
+            found.extend(_static_differences(x, y, here))
+    return found
+
+
+def _stack(items, kind, label):
+    """Stack pytrees of type ``kind`` with equal structure and leaf shapes along a new leading
+    axis. label names them in errors ("task", "guess")."""
+    if not isinstance(items, Sequence):
+        raise TypeError(f"expected a list of {kind.__name__}s to stack, got {type(items).__name__}")
+    if not items:
+        raise ValueError(f"cannot stack an empty list of {label}s")
+    for i, item in enumerate(items):
+        if not isinstance(item, kind):
+            raise TypeError(f"{label} {i} is a {type(item).__name__}, not a {kind.__name__}")
+    first, first_def = jax.tree_util.tree_flatten_with_path(items[0])
+    for i, item in enumerate(items[1:], start=1):
+        leaves, treedef = jax.tree_util.tree_flatten_with_path(item)
+        if treedef != first_def:
+            differences = _static_differences(items[0], item, label) or ["the pytree structure"]
+            raise ValueError(f"{label} {i} cannot be batched with {label} 0: they differ in their static "
+                             f"structure ({'; '.join(differences)})")
+        for (path, a), (_, b) in zip(first, leaves):
+            if jnp.shape(a) != jnp.shape(b):
+                raise ValueError(f"{label} {i} cannot be batched with {label} 0: {label}"
+                                 f"{jax.tree_util.keystr(path)} has shape {jnp.shape(b)}, not {jnp.shape(a)}")
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *items)
+
+
+def broadcast_task(task, size):
+    """``task`` repeated ``size`` times as a batched ``Task`` (every array leaf (size, ...))."""
+    return jax.tree.map(lambda leaf: jnp.broadcast_to(leaf, (size,) + jnp.shape(leaf)), task)
+
+
+def stack_tasks(tasks):
+    """One batched ``Task`` from a list of B tasks of equal structure (same robot topology, knot
+    count, options and name; their numbers may differ): every array leaf gets a leading (B,)
+    axis. Raises ValueError naming the first field that differs in structure or shape."""
+    return _stack(tasks, Task, "task")
+
+
+def stack_trajectories(trajectories):
+    """One batched ``Trajectory`` (leaves (B, N + 1, ...), total time (B,)) from a list of B
+    trajectories with the same knot count and robot layout."""
+    return _stack(trajectories, Trajectory, "guess")
+
+
+def batch_size(batch):
+    """B, the leading axis shared by every leaf of a batched pytree (``Task``, ``Trajectory``,
+    ``TaskSolution``). Raises ValueError when the leaves disagree or one is a scalar."""
+    leaves = jax.tree_util.tree_flatten_with_path(batch)[0]
+    if not leaves:
+        raise ValueError("a batch needs at least one array leaf")
+    sizes = {}
+    for path, leaf in leaves:
+        shape = jnp.shape(leaf)
+        if not shape:
+            raise ValueError(f"{jax.tree_util.keystr(path)} is a scalar: not batched (stack instances with "
+                             "stack_tasks or stack_trajectories)")
+        sizes.setdefault(shape[0], jax.tree_util.keystr(path))
+    if len(sizes) > 1:
+        raise ValueError("the leaves of the batch have different leading sizes: "
+                         + ", ".join(f"{path} {size}" for size, path in sizes.items()))
+    return next(iter(sizes))
+
+
+def instance(batch, i):
+    """Instance i of a batched pytree (the leading axis removed from every leaf): a
+    ``TaskSolution`` of ``solve_batch``, a guess of ``sample_guesses``, a task of ``stack_tasks``."""
+    size = batch_size(batch)
+    if not isinstance(i, (int, np.integer)) or not -size <= i < size:
+        raise IndexError(f"instance {i!r} is out of range for a batch of {size}")
+    return jax.tree.map(lambda leaf: leaf[i], batch)
+
+
+def _batched_guesses(guesses):
+    return stack_trajectories(guesses) if isinstance(guesses, Sequence) else guesses
+
+
+def _check_shapes(trajectory, expected, batch, label):
+    """Every leaf of ``trajectory`` has the shape batch + that of ``expected`` (one instance's
+    ShapeDtypeStructs); label names it in the error."""
+    for (path, leaf), want in zip(jax.tree_util.tree_flatten_with_path(trajectory)[0], jax.tree.leaves(expected)):
+        if jnp.shape(leaf) != batch + want.shape:
+            raise ValueError(f"{label}{jax.tree_util.keystr(path)} has shape {jnp.shape(leaf)}; the task needs "
+                             f"{batch + want.shape}" + (f" = (B,) + {want.shape}" if batch else ""))
+
+
+def _check_guesses(guesses, expected, size=None):
+    """guesses: a batched Trajectory whose instances have the shapes of ``expected`` (one
+    instance's ShapeDtypeStructs); size: the batch size it must have (None: any)."""
+    if not isinstance(guesses, Trajectory):
+        raise TypeError(f"guesses must be a batched Trajectory or a list of Trajectories, got {type(guesses).__name__}")
+    if jnp.ndim(guesses.total_time) != 1:
+        raise ValueError(f"guesses must have a leading batch axis (total_time of shape (B,)), got total_time of shape "
+                         f"{jnp.shape(guesses.total_time)}; solve one guess with optimise.solve_task, or stack "
+                         "guesses with stack_trajectories")
+    count = jnp.shape(guesses.total_time)[0]
+    _check_shapes(guesses, expected, (count,), "guesses")
+    if size is not None and count != size:
+        raise ValueError(f"{count} guesses for a batch of {size} tasks: give one guess per task")
+
+
+# ------------------------------------------------------------------------------------- solve
+
+_published_guess = jax.jit(initial_guess)
+
+
+@jax.jit
+def published_guesses(tasks):
+    """The published initial guess (``tasks.initial_guess``) of every task of a batched ``Task``:
+    a batched ``Trajectory``."""
+    return jax.vmap(initial_guess)(tasks)
+
+
+@functools.partial(jax.jit, static_argnames="options")
+def _solve_batch(tasks, guesses, options):
+    """``optimise._solve`` vmapped over a batched task and its guesses."""
+    return jax.vmap(lambda task, guess: optimise._solve(task, guess, options, None, None))(tasks, guesses)
+
+
+def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS):
+    """Solve one ``task`` from B initial guesses at once (multi-start).
+
+    guesses: a batched ``Trajectory`` (leaves (B, N + 1, ...), total time (B,)), e.g. from
+    ``sample_guesses``, or a list of B ``Trajectory``s. options: ``ip.Options`` (static).
+    Returns a batched ``TaskSolution`` (every leaf (B, ...)): see ``instance`` and ``summarise``.
+
+    The task is broadcast to the batch, so this is ``solve_batch_tasks`` of B copies: one
+    compilation per (task structure, B, options) serves both.
+    """
+    if not isinstance(task, Task):
+        raise TypeError(f"task must be a Task, got {type(task).__name__}")
+    if jnp.ndim(task.params.min_dt) != 0:
+        raise ValueError("task is batched (use solve_batch_tasks for a batch of tasks)")
+    guesses = _batched_guesses(guesses)
+    _check_guesses(guesses, jax.eval_shape(initial_guess, task))
+    return _solve_batch(broadcast_task(task, batch_size(guesses)), guesses, options)
+
+
+def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS):
+    """Solve B tasks of one structure at once, instance i of ``tasks`` from guess i.
+
+    tasks: a batched ``Task`` (``stack_tasks``) or a list of B ``Task``s (stacked here): their
+    targets, heights, weights, bounds may differ. guesses: a batched ``Trajectory`` or a list of
+    B, default the published initial guess of each task. Returns a batched ``TaskSolution``.
+    """
+    if isinstance(tasks, Sequence):
+        tasks = stack_tasks(tasks)
+    if not isinstance(tasks, Task):
+        raise TypeError(f"tasks must be a batched Task or a list of Tasks, got {type(tasks).__name__}")
+    size = batch_size(tasks)
+    if guesses is None:
+        guesses = published_guesses(tasks)
+    guesses = _batched_guesses(guesses)
+    _check_guesses(guesses, jax.eval_shape(initial_guess, instance(tasks, 0)), size)
+    return _solve_batch(tasks, guesses, options)
+
+
+# ---------------------------------------------------------------------------------- guesses
+
+
+def _is_key(key):
+    dtype = getattr(key, "dtype", None)
+    if dtype is None:
+        return False
+    if jnp.issubdtype(dtype, jax.dtypes.prng_key):
+        return jnp.ndim(key) == 0
+    return dtype == jnp.uint32 and jnp.shape(key) == (2,)
+
+
+def sample_guesses(task, key, n, *, around=None, joint_scale=0.1, horizon_scale=1.0, contact_shift=0.05,
+                   contact_lift=0.05, thrust_scale=30.0):
+    """n initial guesses perturbed at random around ``around`` (default: the published guess),
+    as one batched ``Trajectory`` (leaves (n, N + 1, ...), total time (n,)) for ``solve_batch``.
+
+    key: a JAX PRNG key (``jax.random.key(seed)``); the same key gives the same guesses.
+    Per guess, with α_k = k / N the ramp from knot 0 to knot N:
+
+    * posture: every joint shifted by δ ~ N(0, joint_scale²) [rad], the same shift at every knot;
+    * horizon: T_total = (1 − horizon_scale) T̄ + horizon_scale U(N min_dt, N max_dt) [s]
+      (horizon_scale in [0, 1]; 1: uniform over the whole box);
+    * contact points: the corners of each rigid body (each sole) shifted horizontally together by
+      δ ~ N(0, contact_shift²) per axis [m] and lifted by α_k h, h ~ U(0, contact_lift) [m]
+      (a foot that rises towards the end; knot 0 stays on the ground);
+    * thrust: each jet's profile plus α_k δ, δ ~ N(0, thrust_scale²) [N].
+
+    Every other variable is that of ``around``. The result is clipped into the variable boxes
+    (``constraints.variable_bounds``: joint limits, thrust range, T_total range, the fixed
+    boundary values), so it is inside them; the solver's bound push then moves it strictly
+    inside. A scale of 0 leaves its variables unperturbed.
+    """
+    if not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n must be a positive integer number of guesses, got {n!r}")
+    if not _is_key(key):
+        raise TypeError(f"key must be one JAX PRNG key (jax.random.key(seed)), got {key!r}")
+    for name, value in (("joint_scale", joint_scale), ("contact_shift", contact_shift),
+                        ("contact_lift", contact_lift), ("thrust_scale", thrust_scale)):
+        if not (np.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be finite and non-negative, got {value!r}")
+    if not 0 <= horizon_scale <= 1:
+        raise ValueError(f"horizon_scale must be in [0, 1], got {horizon_scale!r}")
+    base = _published_guess(task) if around is None else around
+    if not isinstance(base, Trajectory):
+        raise TypeError(f"around must be a Trajectory, got {type(base).__name__}")
+    _check_shapes(base, jax.eval_shape(initial_guess, task), (), "around")
+    scales = (joint_scale, horizon_scale, contact_shift, contact_lift, thrust_scale)
+    return _sample(task, base, jax.random.split(key, n), *(jnp.asarray(x, dtype=float) for x in scales))
+
+
+@jax.jit
+def _sample(task, base, keys, joint_scale, horizon_scale, contact_shift, contact_lift, thrust_scale):
+    """``sample_guesses`` for keys (n,), compiled once per task structure and n."""
+    lower, upper = variable_bounds(task)
+    layout = task.layout
+    topology = task.robot.model.topology
+    bodies = [topology.frame_body[topology.frame_names.index(f)] for f in task.robot.contact_frames]
+    # Corner c belongs to rigid body groups[c]: the corners of one sole move together.
+    groups = np.unique(np.asarray(bodies, dtype=int), return_inverse=True)[1].reshape(-1)
+    n_groups = int(groups.max(initial=-1)) + 1
+    ramp = jnp.linspace(0.0, 1.0, task.n_knots)[:, None]  # (N + 1, 1) α_k
+
+    def one(key):
+        k_joint, k_time, k_shift, k_lift, k_thrust = jax.random.split(key, 5)
+        knots = base.knots
+        posture = joint_scale * jax.random.normal(k_joint, (layout.n_joints,))
+        shift = contact_shift * jax.random.normal(k_shift, (n_groups, 2))[groups]  # (nc, 2)
+        lift = contact_lift * jax.random.uniform(k_lift, (n_groups,))[groups]  # (nc,)
+        offset = jnp.concatenate([jnp.broadcast_to(shift, (task.n_knots, layout.n_contacts, 2)),
+                                  (ramp * lift)[..., None]], axis=-1)
+        thrust = thrust_scale * jax.random.normal(k_thrust, (layout.n_jets,))
+        horizon = jax.random.uniform(k_time, minval=lower.total_time, maxval=upper.total_time)
+        guess = Trajectory(
+            dataclasses.replace(
+                knots,
+                joint_positions=knots.joint_positions + posture,
+                contact_points=knots.contact_points + offset,
+                thrust=knots.thrust + ramp * thrust,
+            ),
+            (1.0 - horizon_scale) * base.total_time + horizon_scale * horizon,
+        )
+        return jax.tree.map(jnp.clip, guess, lower, upper)
+
+    return jax.vmap(one)(keys)
+
+
+# ---------------------------------------------------------------------------------- summary
+
+
+@dataclasses.dataclass(frozen=True)
+class InstanceResult:
+    """One instance of a batch: its index, why it stopped, objective, max violation (the NLP's
+    units, boxes included), Newton iterations and the index of its contact schedule in
+    ``BatchSummary.schedules``."""
+
+    index: int
+    status: ip.Status
+    objective: float
+    violation: float
+    iterations: int
+    schedule: int
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactSchedule:
+    """A contact schedule shared by some instances: ``airborne`` (N + 1, nc) bool (corner off
+    the ground at a knot, ``analysis.airborne_corners``), the ``flight_knots`` (every corner off
+    the ground) and the ``members`` (instance indices, best first)."""
+
+    airborne: np.ndarray
+    flight_knots: tuple
+    members: tuple
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchSummary:
+    """The instances of a batch ranked best first (``ranking``) and their distinct contact
+    schedules (``schedules``, in the order of their best member). ``corners``: the contact
+    frame names; ``tolerance``: the violation below which an instance counts as feasible."""
+
+    ranking: tuple
+    schedules: tuple
+    corners: tuple
+    tolerance: float
+
+    @property
+    def best(self):
+        """The best instance (an ``InstanceResult``)."""
+        return self.ranking[0]
+
+    def __str__(self):
+        converged = sum(r.status is ip.Status.CONVERGED for r in self.ranking)
+        feasible = sum(_tier(r, self.tolerance) == 1 for r in self.ranking)
+        lines = [
+            f"{len(self.ranking)} instances: {converged} converged, {feasible} feasible (violation ≤ "
+            f"{self.tolerance:g}) without converging, {len(self.ranking) - converged - feasible} neither; "
+            f"{len(self.schedules)} contact schedule{'s' if len(self.schedules) != 1 else ''}",
+            "",
+            f"{'rank':>4}  {'instance':>8}  {'status':<14}  {'objective':>12}  {'violation':>9}  {'iterations':>10}  schedule",
+        ]
+        for rank, r in enumerate(self.ranking, start=1):
+            lines.append(f"{rank:>4}  {r.index:>8}  {r.status.name.lower():<14}  {r.objective:>12.6g}  "
+                         f"{r.violation:>9.2g}  {r.iterations:>10}  {r.schedule + 1}")
+        width = max((len(c) for c in self.corners), default=0)
+        for number, schedule in enumerate(self.schedules, start=1):
+            lines += ["", f"schedule {number}: instances {', '.join(map(str, schedule.members))}; "
+                          f"flight knots {_ranges(schedule.flight_knots)}"]
+            if self.corners:
+                n_knots = schedule.airborne.shape[0]
+                lines.append(f"  {'knot':<{width}}  " + "".join(str(k % 10) for k in range(n_knots)))
+                for name, column in zip(self.corners, schedule.airborne.T):
+                    lines.append(f"  {name:<{width}}  " + "".join("." if up else "#" for up in column))
+        lines += ["", "(# on the ground, . off it)"] if self.corners else []
+        return "\n".join(lines)
+
+
+def _ranges(knots):
+    """(3, 4, 5, 9) → "3–5, 9"; () → "none"."""
+    if not knots:
+        return "none"
+    spans = [[knots[0], knots[0]]]
+    for k in knots[1:]:
+        if k == spans[-1][1] + 1:
+            spans[-1][1] = k
+        else:
+            spans.append([k, k])
+    return ", ".join(f"{a}–{b}" if b > a else str(a) for a, b in spans)
+
+
+def _tier(result, tolerance):
+    """0: converged; 1: feasible (violation ≤ tolerance, finite numbers) without converging;
+    2: neither."""
+    if result.status is ip.Status.CONVERGED:
+        return 0
+    if result.status is not ip.Status.NAN and result.violation <= tolerance and np.isfinite(result.objective):
+        return 1
+    return 2
+
+
+def _rank_key(result, tolerance):
+    """Converged, then feasible, then the rest; the first two by objective, the rest by
+    violation then objective (non-finite numbers last)."""
+    finite = lambda x: x if np.isfinite(x) else np.inf  # noqa: E731
+    tier = _tier(result, tolerance)
+    if tier < 2:
+        return (tier, finite(result.objective), 0.0)
+    return (tier, finite(result.violation), finite(result.objective))
+
+
+def summarise(task, batch_solution, *, tolerance=optimise.DEFAULT_OPTIONS.tolerance, contact_height=0.01):
+    """Rank the instances of a batched ``TaskSolution`` and group them by contact schedule.
+
+    Ranking: converged instances first, then those feasible to ``tolerance`` (the solver's
+    violation, NLP units) that did not converge, each by objective; then the rest by violation.
+    A schedule is which contact corners are off the ground (higher than contact_height [m], as
+    in ``analysis.validate``) at which knots. task: the task (or the batched task) solved; only
+    its contact frame names are read. Returns a ``BatchSummary``; ``print`` it for a table.
+    """
+    batch_size(batch_solution)  # rejects a solution that is not batched, naming a scalar leaf
+    solution = batch_solution.solution
+    status, objective, violation, iterations = (
+        np.asarray(x) for x in (solution.status, solution.objective, solution.violation, solution.iterations))
+    every = analysis.airborne_corners(batch_solution.trajectory, contact_height)  # (B, N + 1, nc)
+    keys, schedules, results = {}, [], []
+    for i, airborne in enumerate(every):
+        key = airborne.tobytes()
+        if key not in keys:
+            keys[key] = len(schedules)
+            schedules.append(airborne)
+        results.append(InstanceResult(index=i, status=ip.Status(int(status[i])), objective=float(objective[i]),
+                                      violation=float(violation[i]), iterations=int(iterations[i]),
+                                      schedule=keys[key]))
+    ranking = sorted(results, key=lambda r: _rank_key(r, tolerance))
+    # Schedules numbered in the order of their best member.
+    order = list(dict.fromkeys(r.schedule for r in ranking))
+    renumber = {old: new for new, old in enumerate(order)}
+    ranking = tuple(dataclasses.replace(r, schedule=renumber[r.schedule]) for r in ranking)
+    grouped = tuple(
+        ContactSchedule(airborne=schedules[old], flight_knots=analysis.flight_knots(schedules[old]),
+                        members=tuple(r.index for r in ranking if r.schedule == new))
+        for new, old in enumerate(order)
+    )
+    return BatchSummary(ranking=ranking, schedules=grouped, corners=tuple(task.robot.contact_frames),
+                        tolerance=float(tolerance))

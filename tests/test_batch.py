@@ -1,0 +1,291 @@
+"""Batched solves (``jaxmm.batch``): a vmapped batch gives the answers of separate solves, an
+instance that stops keeps its answer while the others run on, the sampler is seeded and stays in
+the boxes, the summary ranks and groups, and mismatched batches are rejected with errors that
+name the problem.
+
+One compiled batch of three serves every solving test, on 14-knot tasks that converge in under
+100 iterations: standing still (x_N = x_0 at the standing CoM) from the published guess and from
+a sampled guess, and the infeasible take-off of ``test_solve_task`` (same structure, other
+numbers), against the same three solved one by one (one more compilation).
+
+A batch and a single solve round differently (batched and unbatched XLA kernels), by 1e-16 at
+the first iteration; the nonconvex iteration amplifies it (≈ 1e-10 after 40 iterations on the
+take-off, 4e-6 at iteration 17 of the standing task below), and over hundreds of iterations the
+two may stop a few iterations apart at points equal within the solver's stationarity tolerance.
+So the first ``EARLY`` iterations must agree to
+``SAME_PATH`` and the answers to ``SAME_ANSWER``.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmm
+from jaxmm import analysis, batch, optimise, tasks
+from jaxmm.solver import interior_point as ip
+from jaxmm.transcription.constraints import variable_bounds
+
+REDUCED_TAKE_OFF = dict(knots=14, min_dt=0.25, max_dt=0.5)
+# The final CoM 5 m up with 1 N jets in 0.14 s: infeasible (tests/test_solve_task.py).
+INFEASIBLE = dict(knots=14, min_dt=0.01, max_dt=0.01, final_com=(0.0, 0.0, 5.57), max_thrust=(1.0, 1.0, 1.0, 1.0))
+EARLY = 10  # iterations over which a batch and a single solve follow the same path
+SAME_PATH = 1e-8  # relative, on every history column over the first EARLY iterations
+SAME_ANSWER = 1e-4  # relative objective: the solver's stationarity tolerance
+ROUNDING = 1e-14  # the same guess computed compiled and eagerly
+
+
+@pytest.fixture(scope="module")
+def task():
+    """Standing still for 14 knots: x_0 = x_N = the standing CoM. The standing base orientation
+    is 0.008 from the identity, so the final orientation is given 0.02 (as in test_analysis)."""
+    robot = jaxmm.load_ironcub()
+    com = jaxmm.com_position(robot.model, robot.standing_configuration)
+    return tasks.scenario("take_off", knots=14, initial_com=com, final_com=com, final_orientation_tolerance=0.02)
+
+
+@pytest.fixture(scope="module")
+def problems(task):
+    """(batched tasks, batched guesses): standing from the published and from a sampled guess,
+    the infeasible take-off from its published guess."""
+    infeasible = tasks.scenario("take_off", **INFEASIBLE)
+    sampled = batch.instance(batch.sample_guesses(task, jax.random.key(1), 1, joint_scale=0.05, thrust_scale=5.0), 0)
+    guesses = [tasks.initial_guess(task), sampled, tasks.initial_guess(infeasible)]
+    return batch.stack_tasks([task, task, infeasible]), batch.stack_trajectories(guesses)
+
+
+@pytest.fixture(scope="module")
+def solved(problems):
+    return batch.solve_batch_tasks(*problems)
+
+
+@pytest.fixture(scope="module")
+def singles(problems):
+    """The instances solved one by one (``instance`` of a stacked task has the task's own leaf
+    types, so this is the compiled solve of ``solve_task(task)``)."""
+    stacked, guesses = problems
+    return [optimise.solve_task(batch.instance(stacked, i), batch.instance(guesses, i))
+            for i in range(batch.batch_size(guesses))]
+
+
+def _with_nan(guess):
+    knots = guess.knots
+    return dataclasses.replace(guess, knots=dataclasses.replace(
+        knots, joint_positions=knots.joint_positions.at[3, 0].set(jnp.nan)))
+
+
+# ----------------------------------------------------------------------------------- solving
+
+
+def test_the_batch_equals_a_loop_of_single_solves(solved, singles):
+    assert batch.batch_size(solved) == 3
+    assert [r.status for r in singles] == [ip.Status.CONVERGED, ip.Status.CONVERGED, ip.Status.INFEASIBLE]
+    for i, single in enumerate(singles):
+        mine = batch.instance(solved, i)
+        assert mine.status is single.status
+        np.testing.assert_allclose(np.asarray(mine.solution.history[:EARLY]),
+                                   np.asarray(single.solution.history[:EARLY]), rtol=SAME_PATH)
+    for i in (0, 1):
+        mine, single = batch.instance(solved, i), singles[i]
+        assert float(mine.solution.objective) == pytest.approx(float(single.solution.objective), rel=SAME_ANSWER)
+        assert float(mine.solution.violation) <= optimise.DEFAULT_OPTIONS.tolerance
+    assert float(solved.solution.violation[2]) > 1.0
+
+
+def test_instances_that_stop_keep_their_answer_while_the_others_run(task, solved):
+    """The two standing solves converge at different iterations, both before the infeasible
+    take-off stops; each keeps the state it stopped in while the batch runs on: its history ends
+    where it stopped and its answer is a valid standing trajectory."""
+    iterations = np.asarray(solved.solution.iterations)
+    assert iterations[0] != iterations[1] and max(iterations[:2]) < iterations[2]
+    history = np.asarray(solved.solution.history)
+    for i, stop in enumerate(iterations):
+        assert np.all(np.isfinite(history[i, :stop])) and np.all(np.isnan(history[i, stop:]))
+    for i in (0, 1):
+        standing = batch.instance(solved, i)
+        # The converged point is the one recorded at its last iteration, not a later one.
+        assert float(standing.solution.objective) == pytest.approx(history[i, iterations[i] - 1, 0], rel=1e-12)
+        report = analysis.validate(task, standing.trajectory)
+        assert report.ok, str(report)
+
+
+def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, problems, solved):
+    """solve_batch broadcasts its task: a batch of three guesses runs the executable compiled
+    for ``solved``. Guesses with a NaN stop at once with status NAN, as a single solve does."""
+    compiled = batch._solve_batch._cache_size()
+    guess = _with_nan(batch.instance(problems[1], 0))
+    result = batch.solve_batch(task, [guess, guess, guess])
+    assert batch._solve_batch._cache_size() == compiled
+    assert [ip.Status(int(s)) for s in result.solution.status] == [ip.Status.NAN] * 3
+    np.testing.assert_array_equal(np.asarray(result.solution.iterations), 1)
+    single = optimise.solve_task(task, guess)
+    assert single.status is ip.Status.NAN and int(single.solution.iterations) == 1
+
+
+def test_the_default_guesses_of_a_batch_of_tasks_are_the_published_ones(task):
+    other = tasks.scenario("take_off", **{**REDUCED_TAKE_OFF, "final_com": (0.0, 0.0, 0.78)})
+    published = batch.published_guesses(batch.stack_tasks([task, other]))
+    for i, one in enumerate((task, other)):
+        for a, b in zip(jax.tree.leaves(batch.instance(published, i)), jax.tree.leaves(tasks.initial_guess(one))):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=ROUNDING, atol=ROUNDING)
+
+
+# ----------------------------------------------------------------------------------- summary
+
+
+def test_the_summary_ranks_by_feasibility_then_objective_and_groups_by_schedule(task, solved):
+    summary = batch.summarise(task, solved)
+    objective = np.asarray(solved.solution.objective)
+    converged = sorted((0, 1), key=lambda i: objective[i])
+    assert [r.index for r in summary.ranking] == converged + [2]
+    assert summary.best.index == converged[0] and summary.best.status is ip.Status.CONVERGED
+    assert summary.ranking[-1].status is ip.Status.INFEASIBLE
+    members = [m for schedule in summary.schedules for m in schedule.members]
+    assert sorted(members) == [0, 1, 2]
+    for result in summary.ranking:
+        schedule = summary.schedules[result.schedule]
+        assert result.index in schedule.members
+        airborne = analysis.airborne_corners(batch.instance(solved, result.index).trajectory)
+        np.testing.assert_array_equal(schedule.airborne, airborne)
+    # Both standing solutions keep every corner on the ground: one schedule, validate's (no flight).
+    standing = {r.index: r.schedule for r in summary.ranking if r.index in (0, 1)}
+    assert standing[0] == standing[1] == summary.best.schedule == 0  # numbered by their best member
+    on_the_ground = summary.schedules[0]
+    report = analysis.validate(task, batch.instance(solved, summary.best.index).trajectory)
+    assert not on_the_ground.airborne.any() and on_the_ground.flight_knots == report.flight_knots == ()
+    assert on_the_ground.members[:2] == tuple(converged)
+    text = str(summary)
+    assert text.startswith("3 instances: 2 converged, 0 feasible")
+    assert "schedule 1: instances " + ", ".join(map(str, on_the_ground.members)) + "; flight knots none" in text
+    assert text.count("l_sole_1") == len(summary.schedules)  # each schedule printed once
+    assert f"  l_sole_1  {'#' * task.n_knots}" in text
+
+
+def test_the_ranking_puts_converged_then_feasible_then_the_rest(task, solved):
+    """Numbers made up on the real batch: a feasible run stopped at the iteration limit ranks
+    after a converged one with a higher objective, and an infeasible one last."""
+    made_up = dataclasses.replace(solved, solution=dataclasses.replace(
+        solved.solution,
+        status=jnp.array([int(ip.Status.MAX_ITERATIONS), int(ip.Status.CONVERGED), int(ip.Status.STALLED)]),
+        objective=jnp.array([1.0, 5.0, 0.5]),
+        violation=jnp.array([1e-8, 1e-9, 1e-3]),
+    ))
+    summary = batch.summarise(task, made_up)
+    assert [r.index for r in summary.ranking] == [1, 0, 2]
+    assert [r.status for r in summary.ranking] == [ip.Status.CONVERGED, ip.Status.MAX_ITERATIONS, ip.Status.STALLED]
+    assert str(summary).startswith("3 instances: 1 converged, 1 feasible")
+
+
+# ----------------------------------------------------------------------------------- sampler
+
+
+def test_the_sampler_is_deterministic_for_a_key_and_stays_in_the_boxes(task):
+    first = batch.sample_guesses(task, jax.random.key(7), 5)
+    again = batch.sample_guesses(task, jax.random.key(7), 5)
+    other = batch.sample_guesses(task, jax.random.key(8), 5)
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert not np.allclose(np.asarray(first.knots.joint_positions), np.asarray(other.knots.joint_positions))
+    assert batch.batch_size(first) == 5
+    lower, upper = variable_bounds(task)
+    for value, lo, hi in zip(jax.tree.leaves(first), jax.tree.leaves(lower), jax.tree.leaves(upper)):
+        value, lo, hi = (np.asarray(v) for v in (value, lo, hi))
+        assert np.all(value >= lo) and np.all(value <= hi)
+    # The instances differ from each other in every perturbed variable.
+    for leaf in (first.knots.joint_positions, first.knots.contact_points, first.knots.thrust, first.total_time):
+        assert np.ptp(np.asarray(leaf), axis=0).max() > 0
+
+
+def test_the_sampler_perturbs_what_its_scales_say(task):
+    published = tasks.initial_guess(task)
+    lower, upper = variable_bounds(task)
+    clipped = jax.tree.map(jnp.clip, published, lower, upper)
+    still = batch.sample_guesses(task, jax.random.key(0), 2, joint_scale=0.0, horizon_scale=0.0, contact_shift=0.0,
+                                 contact_lift=0.0, thrust_scale=0.0)
+    for i in range(2):
+        for a, b in zip(jax.tree.leaves(batch.instance(still, i)), jax.tree.leaves(clipped)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=ROUNDING, atol=ROUNDING)
+    # Only the posture: the same shift at every knot, nothing else moves.
+    posture = batch.instance(batch.sample_guesses(task, jax.random.key(0), 1, horizon_scale=0.0, contact_shift=0.0,
+                                                  contact_lift=0.0, thrust_scale=0.0), 0)
+    shift = np.asarray(posture.knots.joint_positions - clipped.knots.joint_positions)
+    assert np.abs(shift).max() > 0
+    inside = np.all((np.asarray(posture.knots.joint_positions) > np.asarray(lower.knots.joint_positions))
+                    & (np.asarray(posture.knots.joint_positions) < np.asarray(upper.knots.joint_positions)), axis=0)
+    np.testing.assert_allclose(shift[:, inside], np.broadcast_to(shift[0, inside], shift[:, inside].shape), atol=1e-15)
+    np.testing.assert_allclose(np.asarray(posture.knots.thrust), np.asarray(clipped.knots.thrust), rtol=ROUNDING)
+    # The corners of a sole move together; knot 0 stays on the ground.
+    contacts = batch.instance(batch.sample_guesses(task, jax.random.key(3), 1, joint_scale=0.0, horizon_scale=0.0,
+                                                   thrust_scale=0.0), 0)
+    offset = np.asarray(contacts.knots.contact_points - clipped.knots.contact_points)  # (N + 1, 8, 3)
+    for sole in (slice(0, 4), slice(4, 8)):  # l_sole_1..4, r_sole_1..4
+        np.testing.assert_allclose(offset[:, sole], np.broadcast_to(offset[:, sole][:, :1], offset[:, sole].shape),
+                                   atol=1e-15)
+    assert not np.allclose(offset[:, 0], offset[:, 4])
+    np.testing.assert_array_equal(offset[0, :, 2], 0.0)
+    assert np.all(offset[-1, :, 2] > 0)
+
+
+def test_the_sampler_rejects_bad_arguments(task):
+    key = jax.random.key(0)
+    with pytest.raises(ValueError, match="n must be a positive integer"):
+        batch.sample_guesses(task, key, 0)
+    with pytest.raises(ValueError, match="joint_scale must be finite and non-negative"):
+        batch.sample_guesses(task, key, 2, joint_scale=-0.1)
+    with pytest.raises(ValueError, match=r"horizon_scale must be in \[0, 1\]"):
+        batch.sample_guesses(task, key, 2, horizon_scale=2.0)
+    with pytest.raises(TypeError, match="key must be one JAX PRNG key"):
+        batch.sample_guesses(task, 0, 2)
+    with pytest.raises(TypeError, match="key must be one JAX PRNG key"):
+        batch.sample_guesses(task, jax.random.split(key, 2), 2)
+    small = tasks.initial_guess(tasks.scenario("take_off", knots=10))
+    with pytest.raises(ValueError, match=r"around\.knots\.com has shape \(11, 3\); the task needs \(15, 3\)"):
+        batch.sample_guesses(task, key, 2, around=small)
+
+
+# ------------------------------------------------------------------------------------ errors
+
+
+def test_tasks_of_different_structure_cannot_be_stacked(task):
+    with pytest.raises(ValueError, match=r"task 1 cannot be batched with task 0: .*task\.n_intervals: 14 vs 10"):
+        batch.stack_tasks([task, tasks.scenario("take_off", knots=10)])
+    with pytest.raises(ValueError, match=r"task 2 cannot .*task\.robot\.jet_frames: differs.*task\.name: 'take_off' vs 'jumping'"):
+        batch.stack_tasks([task, task, tasks.scenario("jumping", knots=14)])
+    with pytest.raises(ValueError, match="cannot stack an empty list of tasks"):
+        batch.stack_tasks([])
+    with pytest.raises(TypeError, match="task 1 is a Trajectory, not a Task"):
+        batch.stack_tasks([task, tasks.initial_guess(task)])
+    with pytest.raises(TypeError, match="expected a list of Tasks to stack"):
+        batch.stack_tasks(task)
+    stacked = batch.stack_tasks([task, tasks.scenario("take_off", **REDUCED_TAKE_OFF, final_com=(0.0, 0.0, 0.78))])
+    assert batch.batch_size(stacked) == 2
+    np.testing.assert_array_equal(np.asarray(stacked.params.final_com[:, 2]), [float(task.params.final_com[2]), 0.78])
+
+
+def test_mismatched_batches_are_rejected_before_compiling(task, problems):
+    guesses = problems[1]
+    one = batch.instance(guesses, 0)
+    with pytest.raises(ValueError, match=r"guesses must have a leading batch axis \(total_time of shape \(B,\)\)"):
+        batch.solve_batch(task, one)
+    small = batch.sample_guesses(tasks.scenario("take_off", knots=10), jax.random.key(0), 2)
+    with pytest.raises(ValueError, match=r"guesses\.knots\.com has shape \(2, 11, 3\); the task needs \(2, 15, 3\)"):
+        batch.solve_batch(task, small)
+    with pytest.raises(ValueError, match="guess 1 cannot be batched with guess 0: guess.knots.com has shape"):
+        batch.solve_batch(task, [one, batch.instance(small, 0)])
+    with pytest.raises(ValueError, match="3 guesses for a batch of 2 tasks"):
+        batch.solve_batch_tasks([task, task], guesses)
+    with pytest.raises(ValueError, match="task is batched"):
+        batch.solve_batch(batch.stack_tasks([task, task]), guesses)
+    with pytest.raises(ValueError, match=r"is a scalar: not batched"):
+        batch.solve_batch_tasks(task, guesses)
+    with pytest.raises(TypeError, match="guesses must be a batched Trajectory or a list of Trajectories"):
+        batch.solve_batch(task, {"total_time": jnp.ones(3)})
+    ragged = dataclasses.replace(guesses, total_time=jnp.ones(2))
+    with pytest.raises(ValueError, match=r"guesses\.knots\.com has shape \(3, 15, 3\); the task needs \(2, 15, 3\)"):
+        batch.solve_batch(task, ragged)
+    with pytest.raises(IndexError, match="instance 3 is out of range for a batch of 3"):
+        batch.instance(guesses, 3)
+    with pytest.raises(ValueError, match="different leading sizes"):
+        batch.batch_size(ragged)

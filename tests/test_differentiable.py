@@ -1,0 +1,112 @@
+"""Gradients of iRonCub's optimal take-off with respect to its task (``jaxmm.differentiable``)
+and weight tuning with optax (``jaxmm.tuning``), on the reduced take-off of ``conftest``.
+
+The gradient is the implicit derivative at the solution; the reference is central differences
+of re-solves warm-started from that solution, which keep its contact schedule (checked). Every
+compiled program here is shared with ``test_solve_task`` (same task structure and options):
+the cold and warm-started solves, and one adjoint program.
+"""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from jaxmm import analysis, differentiable, tuning
+from jaxmm.optimise import solve_task
+from jaxmm.solver import interior_point as ip
+
+STEP = 1e-4  # relative finite-difference step
+AGREE = 5e-3  # relative; see test_the_take_off_gradient_matches_central_differences_of_re_solves
+
+
+def impulse(task, trajectory):
+    """Total thrust impulse Σ_k T[k] Δt [N s] (the rectangle rule over knots 0..N−1)."""
+    return jnp.sum(trajectory.knots.thrust[:-1]) * trajectory.total_time / task.n_intervals
+
+
+def _final_height(task, value):
+    return dataclasses.replace(task, params=dataclasses.replace(
+        task.params, final_com=task.params.final_com.at[2].set(value)))
+
+
+def _weight(name):
+    def set_weight(task, value):
+        return dataclasses.replace(task, weights=dataclasses.replace(task.weights, **{name: value}))
+    return set_weight
+
+
+CASES = {  # name: (task with the parameter set to a value, the parameter's cotangent in task_bar)
+    "final CoM height": (_final_height, lambda bar: bar.params.final_com[2], lambda task: task.params.final_com[2]),
+    "weight com_vel": (_weight("com_vel"), lambda bar: bar.weights.com_vel, lambda task: task.weights.com_vel),
+    "weight final_thrust": (_weight("final_thrust"), lambda bar: bar.weights.final_thrust,
+                            lambda task: task.weights.final_thrust),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_the_take_off_gradient_matches_central_differences_of_re_solves(solved_take_off, name):
+    """d(thrust impulse)/d(parameter) at the take-off's solution, against (J(p + h) − J(p − h)) / 2h
+    from solves warm-started at the solution (h = 1e-4 p; 1e-3 p gives the same differences to
+    5e-7). The agreement is limited by the solution's own accuracy, not by the adjoint solve
+    (residual ≤ 1e-10): the base solve stops at the paper's stationarity, 1e-4, and its
+    multipliers, which make the Hessian, are that accurate. Measured: 3.2e-4, 8.7e-5 and 2.4e-3
+    for these three parameters (the issue's goal, 1e-4, is met by the QP and the pendulum of
+    ``test_sensitivity``, not here). A base solve to stationarity 1e-8 (292 iterations) did not
+    help: its re-solves needed 130 iterations and the adjoint residual rose to 1e-8."""
+    task, result = solved_take_off
+    assert result.status is ip.Status.CONVERGED
+    value, task_bar, diagnostics = differentiable.gradient(task, result, impulse)
+    assert bool(diagnostics.reliable()) and float(diagnostics.residual) <= 1e-10, diagnostics
+    assert float(value) == pytest.approx(float(impulse(task, result.trajectory)), rel=1e-14)
+    with_value, cotangent, parameter = CASES[name]
+    x = float(parameter(task))
+    h = STEP * abs(x)
+    schedule = analysis.airborne_corners(result.trajectory)
+    values = []
+    for sign in (1.0, -1.0):
+        perturbed = with_value(task, jnp.asarray(x + sign * h, dtype=float))  # strong float64: no recompilation
+        again = solve_task(perturbed, warm_start=result)
+        assert again.status is ip.Status.CONVERGED, again.status.message
+        np.testing.assert_array_equal(analysis.airborne_corners(again.trajectory), schedule)
+        values.append(float(impulse(perturbed, again.trajectory)))
+    difference = (values[0] - values[1]) / (2 * h)
+    derivative = float(cotangent(task_bar))
+    print(f"{name}: implicit {derivative:.10g}, central difference {difference:.10g}, "
+          f"relative error {abs(derivative - difference) / abs(difference):.2g}")
+    assert abs(difference) > 0
+    assert abs(derivative - difference) <= AGREE * abs(difference)
+
+
+def test_tuning_moves_the_thrust_impulse_towards_a_target(solved_take_off):
+    """Three Adam steps on log(com_vel, final_thrust) towards an impulse 1 % below the solution's:
+    the loss falls, every solve converges, the history is complete, and the weights returned are
+    those of the lowest loss seen."""
+    task, result = solved_take_off
+    target = 0.99 * float(impulse(task, result.trajectory))
+
+    def loss(task, trajectory):
+        return (impulse(task, trajectory) / target - 1.0) ** 2
+
+    seen = []
+    tuned = tuning.tune_weights(task, loss, names=("com_vel", "final_thrust"), optimizer=optax.adam(0.2), steps=3,
+                                warm_start=result, callback=lambda step, value, weights: seen.append(value))
+    print(tuned)
+    assert tuned.stopped == "3 steps"
+    assert len(tuned.loss) == 3 and seen == list(tuned.loss)
+    assert np.all(tuned.status == int(ip.Status.CONVERGED))
+    assert tuned.loss[-1] < tuned.loss[0]
+    best = int(np.argmin(tuned.loss))
+    for i, name in enumerate(tuned.names):
+        assert float(getattr(tuned.weights, name)) == pytest.approx(float(np.exp(tuned.log_weights[best, i])), rel=1e-12)
+    assert np.all(np.isfinite(tuned.gradients)) and np.all(tuned.gradients != 0)
+
+
+def test_tuning_rejects_unknown_and_zero_weights(solved_take_off):
+    task, _ = solved_take_off
+    with pytest.raises(ValueError, match="unknown weight name"):
+        tuning.tune_weights(task, impulse, names=("com_velocity",))
+    with pytest.raises(ValueError, match="not positive"):
+        tuning.tune_weights(task, impulse, names=("thrust",))  # 0 in the take-off
