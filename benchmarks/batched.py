@@ -49,39 +49,19 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import statistics  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402, F401  (enables float64)
-from machine import format_time, machine_lines  # noqa: E402
+from machine import format_time, log, machine_lines, render, timed  # noqa: E402
 from jaxmm import batch, optimise, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 
 SCENARIO = "take_off"
 PUBLISHED = tasks.SCENARIOS[SCENARIO]["knots"]
 DEFAULT_SIZES = (1, 8, 32, 64)
-
-
-def log(message):
-    print(message, file=sys.stderr, flush=True)
-
-
-def timed(run):
-    """(result, wall seconds) of run()."""
-    start = time.perf_counter()
-    result = run()
-    return result, time.perf_counter() - start
-
-
-def render(header, rows):
-    """A Markdown table."""
-    lines = [tuple(header)] + [tuple(map(str, row)) for row in rows]
-    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
-    cells = lambda line: "| " + " | ".join(c.ljust(w) for c, w in zip(line, widths)) + " |"  # noqa: E731
-    return "\n".join([cells(lines[0]), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + list(map(cells, lines[1:])))
 
 
 def reduced_task(knots):

@@ -1,9 +1,11 @@
-"""What every benchmark shares: the header (the machine, its load, package versions) and the
-format of a duration."""
+"""What every benchmark shares: the header (the machine, its load, package versions), the
+format of a duration, progress lines, a wall-clock timer and Markdown tables."""
 
 import importlib.metadata
 import os
 import platform
+import sys
+import time
 
 
 def machine_lines(packages):
@@ -30,3 +32,23 @@ def format_time(value):
     if value < 1:
         return f"{value * 1e3:.3g} ms"
     return f"{value:.3g} s"
+
+
+def log(message):
+    """A progress line on stderr (the tables go to stdout)."""
+    print(message, file=sys.stderr, flush=True)
+
+
+def timed(run):
+    """(result, wall seconds) of run()."""
+    start = time.perf_counter()
+    result = run()
+    return result, time.perf_counter() - start
+
+
+def render(header, rows):
+    """A Markdown table."""
+    lines = [tuple(header)] + [tuple(map(str, row)) for row in rows]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
+    cells = lambda line: "| " + " | ".join(c.ljust(w) for c, w in zip(line, widths)) + " |"  # noqa: E731
+    return "\n".join([cells(lines[0]), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + list(map(cells, lines[1:])))

@@ -57,7 +57,7 @@ import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
-from machine import format_time, machine_lines  # noqa: E402
+from machine import format_time, log, machine_lines  # noqa: E402
 
 FRAMES = (
     "l_sole_1", "l_sole_2", "l_sole_3", "l_sole_4",
@@ -124,10 +124,6 @@ CPP_DEFINES = (  # from Pinocchio's exported CMake targets
     "-DBOOST_FUSION_INVOKE_MAX_ARITY=12",
     "-DPINOCCHIO_ENABLE_TEMPLATE_INSTANTIATION",
 )
-
-
-def log(message):
-    print(message, file=sys.stderr, flush=True)
 
 
 def timed(run):

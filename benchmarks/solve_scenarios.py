@@ -50,14 +50,13 @@ import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import logging  # noqa: E402
 import statistics  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
-from machine import format_time, machine_lines  # noqa: E402
+from machine import format_time, log, machine_lines, render, timed  # noqa: E402
 from jaxmm import analysis, optimise, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
@@ -67,17 +66,6 @@ IPOPT_TOLERANCE = 1e-4  # the paper's IPOPT tol and constr_viol_tol (physical un
 KNOT_SCENARIO = "take_off"
 KNOT_COUNTS = (60, 100, 200, 400)
 KNOT_BUDGET = 10  # iterations per solve of the --knots study
-
-
-def log(message):
-    print(message, file=sys.stderr, flush=True)
-
-
-def timed(run):
-    """(result, wall seconds) of run()."""
-    start = time.perf_counter()
-    result = run()
-    return result, time.perf_counter() - start
 
 
 # ------------------------------------------------------------------------------------------ ours
@@ -112,14 +100,6 @@ def solve_ours(task, guess, options, repeats):
 
 
 # --------------------------------------------------------------------------------------- report
-
-
-def render(header, rows):
-    """A Markdown table."""
-    lines = [tuple(header)] + [tuple(map(str, row)) for row in rows]
-    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
-    cells = lambda line: "| " + " | ".join(c.ljust(w) for c, w in zip(line, widths)) + " |"  # noqa: E731
-    return "\n".join([cells(lines[0]), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + list(map(cells, lines[1:])))
 
 
 def verdict(report):

@@ -38,7 +38,6 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
 import argparse  # noqa: E402
 import logging  # noqa: E402
 import statistics  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 
@@ -48,7 +47,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
-from machine import format_time, machine_lines  # noqa: E402
+from machine import format_time, log, machine_lines  # noqa: E402
 from jaxmm import tasks  # noqa: E402
 from jaxmm.reference import ReferenceNLP  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
@@ -58,10 +57,6 @@ SEED = 0
 TOLERANCE = 1e-9  # on |JAX − CasADi| / max(1, max |CasADi|)
 PAPER_JACOBIAN = 66e-3  # s per constraint-Jacobian evaluation of the paper's code at N = 70
 GOAL_JACOBIAN = 5e-3
-
-
-def log(message):
-    print(message, file=sys.stderr, flush=True)
 
 
 def median_seconds(run, repeats):

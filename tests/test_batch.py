@@ -3,7 +3,8 @@ instance that stops keeps its answer while the others run on, the sampler is see
 the boxes, the summary ranks and groups, and mismatched batches are rejected with errors that
 name the problem.
 
-One compiled batch of three serves every solving test, on 14-knot tasks that converge in under
+One compiled batch of three serves every solving test (marked slow: 6–9 min of compiling and
+solving on 2 cores, run by hand with ``pytest -m slow``), on 14-knot tasks that converge in under
 100 iterations: standing still (x_N = x_0 at the standing CoM) from the published guess and from
 a sampled guess, and the infeasible take-off of ``test_solve_task`` (same structure, other
 numbers), against the same three solved one by one (one more compilation).
@@ -28,7 +29,8 @@ from jaxmm import analysis, batch, optimise, tasks
 from jaxmm.solver import interior_point as ip
 from jaxmm.transcription.constraints import variable_bounds
 
-REDUCED_TAKE_OFF = dict(knots=14, min_dt=0.25, max_dt=0.5)
+from conftest import REDUCED_TAKE_OFF
+
 # The final CoM 5 m up with 1 N jets in 0.14 s: infeasible (tests/test_solve_task.py).
 INFEASIBLE = dict(knots=14, min_dt=0.01, max_dt=0.01, final_com=(0.0, 0.0, 5.57), max_thrust=(1.0, 1.0, 1.0, 1.0))
 EARLY = 10  # iterations over which a batch and a single solve follow the same path
@@ -79,6 +81,7 @@ def _with_nan(guess):
 # ----------------------------------------------------------------------------------- solving
 
 
+@pytest.mark.slow
 def test_the_batch_equals_a_loop_of_single_solves(solved, singles):
     assert batch.batch_size(solved) == 3
     assert [r.status for r in singles] == [ip.Status.CONVERGED, ip.Status.CONVERGED, ip.Status.INFEASIBLE]
@@ -94,6 +97,7 @@ def test_the_batch_equals_a_loop_of_single_solves(solved, singles):
     assert float(solved.solution.violation[2]) > 1.0
 
 
+@pytest.mark.slow
 def test_instances_that_stop_keep_their_answer_while_the_others_run(task, solved):
     """The two standing solves converge at different iterations, both before the infeasible
     take-off stops; each keeps the state it stopped in while the batch runs on: its history ends
@@ -111,6 +115,7 @@ def test_instances_that_stop_keep_their_answer_while_the_others_run(task, solved
         assert report.ok, str(report)
 
 
+@pytest.mark.slow
 def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, problems, solved):
     """solve_batch broadcasts its task: a batch of three guesses runs the executable compiled
     for ``solved``. Guesses with a NaN stop at once with status NAN, as a single solve does."""
@@ -135,6 +140,7 @@ def test_the_default_guesses_of_a_batch_of_tasks_are_the_published_ones(task):
 # ----------------------------------------------------------------------------------- summary
 
 
+@pytest.mark.slow
 def test_the_summary_ranks_by_feasibility_then_objective_and_groups_by_schedule(task, solved):
     summary = batch.summarise(task, solved)
     objective = np.asarray(solved.solution.objective)
@@ -163,6 +169,7 @@ def test_the_summary_ranks_by_feasibility_then_objective_and_groups_by_schedule(
     assert f"  l_sole_1  {'#' * task.n_knots}" in text
 
 
+@pytest.mark.slow
 def test_the_ranking_puts_converged_then_feasible_then_the_rest(task, solved):
     """Numbers made up on the real batch: a feasible run stopped at the iteration limit ranks
     after a converged one with a higher objective, and an infeasible one last."""

@@ -4,7 +4,8 @@ and weight tuning with optax (``jaxmm.tuning``), on the reduced take-off of ``co
 The gradient is the implicit derivative at the solution; the reference is central differences
 of re-solves warm-started from that solution, which keep its contact schedule (checked). Every
 compiled program here is shared with ``test_solve_task`` (same task structure and options):
-the cold and warm-started solves, and one adjoint program.
+the cold and warm-started solves, and one adjoint program. The solving tests are marked slow
+(5–6 min on 2 cores): run them by hand with ``pytest -m slow``.
 """
 
 import dataclasses
@@ -14,9 +15,11 @@ import numpy as np
 import optax
 import pytest
 
-from jaxmm import analysis, differentiable, tuning
+from jaxmm import analysis, differentiable, tasks, tuning
 from jaxmm.optimise import solve_task
 from jaxmm.solver import interior_point as ip
+
+from conftest import REDUCED_TAKE_OFF
 
 STEP = 1e-4  # relative finite-difference step
 AGREE = 5e-3  # relative; see test_the_take_off_gradient_matches_central_differences_of_re_solves
@@ -46,6 +49,7 @@ CASES = {  # name: (task with the parameter set to a value, the parameter's cota
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(CASES))
 def test_the_take_off_gradient_matches_central_differences_of_re_solves(solved_take_off, name):
     """d(thrust impulse)/d(parameter) at the take-off's solution, against (J(p + h) − J(p − h)) / 2h
@@ -80,6 +84,7 @@ def test_the_take_off_gradient_matches_central_differences_of_re_solves(solved_t
     assert abs(derivative - difference) <= AGREE * abs(difference)
 
 
+@pytest.mark.slow
 def test_tuning_moves_the_thrust_impulse_towards_a_target(solved_take_off):
     """Three Adam steps on log(com_vel, final_thrust) towards an impulse 1 % below the solution's:
     the loss falls, every solve converges, the history is complete, and the weights returned are
@@ -104,8 +109,8 @@ def test_tuning_moves_the_thrust_impulse_towards_a_target(solved_take_off):
     assert np.all(np.isfinite(tuned.gradients)) and np.all(tuned.gradients != 0)
 
 
-def test_tuning_rejects_unknown_and_zero_weights(solved_take_off):
-    task, _ = solved_take_off
+def test_tuning_rejects_unknown_and_zero_weights():
+    task = tasks.scenario("take_off", **REDUCED_TAKE_OFF)
     with pytest.raises(ValueError, match="unknown weight name"):
         tuning.tune_weights(task, impulse, names=("com_velocity",))
     with pytest.raises(ValueError, match="not positive"):

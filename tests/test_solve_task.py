@@ -21,6 +21,7 @@ from jaxmm.solver import interior_point as ip
 from jaxmm.transcription import nlp as transcription
 
 from conftest import REDUCED_TAKE_OFF
+
 REDUCED_JUMPING = dict(knots=15, min_dt=0.2, max_dt=0.4)
 COMPARABLE = 1e-3  # relative objective difference
 
