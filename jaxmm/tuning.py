@@ -109,12 +109,12 @@ def tune_weights(task, loss: Callable, names=None, optimizer=None, steps=20, opt
         if result.status is not ip.Status.CONVERGED:
             stopped = f"solve did not converge at step {step}: {result.status.message}"
             break
+        if best is None or value < best[0]:
+            best = (value, log_weights, result)
         if not bool(diagnostics.reliable()) or not np.all(np.isfinite(slope)) or not np.isfinite(value):
             stopped = (f"no reliable gradient at step {step}: adjoint residual {float(diagnostics.residual):.2g}, "
                        f"factored {bool(diagnostics.factored)}, loss {value:.6g}")
             break
-        if best is None or value < best[0]:
-            best = (value, log_weights, result)
         if value <= tolerance:
             stopped = f"loss {value:.6g} ≤ tolerance {tolerance:.6g} at step {step}"
             break
