@@ -365,7 +365,7 @@ def _kkt(nlp, Z, theta, y, barrier, options):
                              C + jnp.diag(1 - free_t + delta * free_t))
 
     # The factor only preconditions GMRES, which solves the unregularised system: a shift δ I on
-    # F costs iterations, not accuracy. Pivots of α H_FF + ρ J̃ᵀJ̃ below ≈ ρ ε (1e-8 at ρ = 1e8)
+    # F costs iterations, not accuracy. Pivots of the condensed matrix below ≈ ρ ε (1e-8 at ρ = 1e8)
     # are rounding, so δ starts there: on iRonCub's take-off, whose reduced Hessian has flat
     # directions (eigenvalues −3e-12 relative), δ = 1e-10 left the preconditioner nearly
     # singular and GMRES at a residual of 8e-5 after 10 cycles; δ = 1e-8 reached 1e-10.
@@ -483,7 +483,8 @@ def _normalise(kkt, gz, gt, gc):
 
 
 def _core(kkt, gz, gt, gc, options):
-    """Solve H_FF w_F + J_𝒜Fᵀ w_𝒜 = g_F, J_𝒜F w_F = g_𝒜 (NLP units): (w_z, w_θ, w_𝒜 per group, cycles)."""
+    """Solve K (w_F, w_𝒜) = (g_F, g_𝒜) in NLP units (𝒜: the rows of the system): (w_z, w_θ, w_𝒜 per
+    group, cycles)."""
     (wz, wt, wc), k = _solve_kkt(kkt, _normalise(kkt, gz, gt, gc), options)
     return wz, wt, tuple(s * c / kkt.hessian_scale for s, c in zip(kkt.row_scale, wc)), k
 
@@ -572,8 +573,8 @@ def vjp(nlp, solution, Z_bar, theta_bar, multipliers_bar=None, options=Options()
 
     nlp: the ``StagewiseNLP`` that was solved; solution: its converged ``Solution``;
     Z_bar (K, nz), theta_bar (ng,): cotangents of Z*, θ*; multipliers_bar: a ``Multipliers`` of
-    cotangents of λ* (None: zeros; the entries of inactive rows are cotangents of a constant 0);
-    active: an ``ActiveSet`` (default ``active_set(nlp, solution, options)``).
+    cotangents of λ* (None: zeros; the entries of rows without a finite bound are cotangents
+    of a constant 0).
     Returns (nlp_bar, diagnostics): nlp_bar has the structure of ``nlp`` with the cotangent of
     every inexact leaf (``args``, ``knot_data`` and the bounds) and float0 zeros on integer
     leaves; ``Diagnostics``.
