@@ -342,6 +342,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     )
     fixed_z = (~bounds.free[0]).astype(dtype)
     fixed_t = (~bounds.free[1]).astype(dtype)
+    fz, ft = 1 - fixed_z, 1 - fixed_t
 
     def body(state):
         P, y, zl, zu = state.P, state.y, state.zl, state.zu
@@ -411,7 +412,6 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
 
         def regularised(hessian, delta):
             D, L, Bd, C = hessian
-            fz, ft = 1 - fixed_z, 1 - fixed_t
             return (
                 fz[:, :, None] * (D + jax.vmap(jnp.diag)(sigma[0] + delta)) * fz[:, None, :] + jax.vmap(jnp.diag)(fixed_z),
                 fz[1:, :, None] * L * fz[:-1, None, :],
@@ -442,7 +442,6 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
 
         delta_w, chol, factored = jax.lax.while_loop(needs_more, grow, (state.forced, chol0, ok0))
         hessian = regularised(lagrangian, delta_w)
-        fz, ft = 1 - fixed_z, 1 - fixed_t
 
         def kkt_solve(ax, a_s, a_c):
             """The regularised (δ_c) KKT system with right-hand sides ax (dual rows of (Z, θ)),
