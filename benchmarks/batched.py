@@ -66,10 +66,7 @@ DEFAULT_SIZES = (1, 8, 32, 64)
 
 def reduced_task(knots):
     """Take-off with N knots and the published 3.5–7 s horizon (Δt scaled by 70 / N)."""
-    if knots == PUBLISHED:
-        return tasks.scenario(SCENARIO)
-    factor = PUBLISHED / knots
-    return tasks.scenario(SCENARIO, knots=knots, min_dt=0.05 * factor, max_dt=0.10 * factor)
+    return tasks.scenario(SCENARIO, knots=knots, keep_horizon=True)
 
 
 def statuses(codes):

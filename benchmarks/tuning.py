@@ -35,12 +35,10 @@ from jaxmm import optimise, tasks, tuning  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 
 NAMES = ("com_vel", "final_thrust")
-PUBLISHED_KNOTS = 70
 
 
 def take_off(knots):
-    factor = PUBLISHED_KNOTS / knots
-    return tasks.scenario("take_off", knots=knots, min_dt=0.05 * factor, max_dt=0.10 * factor)
+    return tasks.scenario("take_off", knots=knots, keep_horizon=True)
 
 
 def with_weights(task, values):

@@ -63,6 +63,16 @@ def _outside(value, lower, upper):
     return np.maximum(np.maximum(np.asarray(lower) - value, value - np.asarray(upper)), 0.0)
 
 
+def check_trajectory(task, trajectory):
+    """Raise a ValueError unless trajectory has the task's N + 1 knots, unbatched."""
+    shape = np.shape(trajectory.knots.com)
+    if shape != (task.n_knots, 3):
+        raise ValueError(
+            f"the trajectory must have the task's {task.n_knots} knots (leaves (N + 1, ...), not batched); "
+            f"its CoM has shape {shape}"
+        )
+
+
 def airborne_corners(trajectory, contact_height=0.01):
     """(N + 1, nc) bool: True where a contact corner is off the ground at a knot, that is higher
     than contact_height [m]. The contact schedule of a trajectory, as ``validate`` sees it. A
@@ -74,6 +84,25 @@ def flight_knots(airborne):
     """The knots (a tuple of ints) at which every contact corner is off the ground, from the
     (N + 1, nc) mask of ``airborne_corners``."""
     return tuple(int(k) for k in np.flatnonzero(airborne.all(axis=1)))
+
+
+def corner_groups(robot):
+    """The contact corners grouped per foot (per body they are fixed to), in the order of
+    ``robot.contact_frames``: ((label, (corner index, ...)), ...); the label is the corners'
+    common name prefix (``l_sole`` for ``l_sole_1`` … ``l_sole_4``)."""
+    model = robot.model
+    groups = {}
+    for index, frame in enumerate(model.frame_indices(robot.contact_frames)):
+        groups.setdefault(model.topology.frame_body[frame], []).append(index)
+    labelled = []
+    for members in groups.values():
+        names = [robot.contact_frames[i] for i in members]
+        prefix = names[0]
+        for name in names[1:]:
+            while not name.startswith(prefix):
+                prefix = prefix[:-1]
+        labelled.append((prefix.rstrip("_") or names[0], tuple(members)))
+    return tuple(labelled)
 
 
 def resimulate_com(task, trajectory):

@@ -1,30 +1,260 @@
-"""The ``jaxmm`` command line."""
+"""The ``jaxmm`` command line: solve the published scenarios, compare with IPOPT, describe robots.
+
+    jaxmm scenarios                                   the four scenarios and their settings
+    jaxmm solve take-off [--knots N] [--target x y z] [--urdf PATH] [--out DIR]
+    jaxmm compare take-off [--knots N]                ours and the CasADi/IPOPT reference
+    jaxmm robot [--urdf PATH]                         a robot summary
+
+``solve`` writes to its output directory the solution (``solution.npz``, see ``jaxmm.io``), the
+validation report (``validation.txt``), a summary (``summary.json``), the figures and an
+animation. Progress (compiling, then every iteration) is shown on a terminal and stays quiet when
+the output is piped or ``CI`` is set.
+"""
 
 import argparse
+import dataclasses
+import json
+import logging
+import os
+import pathlib
 import sys
+import tempfile
+import threading
+import time
+
+ERRORS = (ValueError, KeyError, FileNotFoundError, TypeError, ImportError)
 
 
-def _robot(args):
+class Progress:
+    """Status lines on a terminal: a compile timer, then one line per iteration, rewritten in
+    place. Silent (but for the final summaries) when ``live`` is False."""
+
+    def __init__(self, live, stream=sys.stderr):
+        self.live, self.stream = live, stream
+        self._stop = threading.Event()
+
+    @staticmethod
+    def detect(quiet):
+        return not quiet and sys.stderr.isatty() and not os.environ.get("CI")
+
+    def _write(self, text):
+        self.stream.write(f"\r\033[K{text}")
+        self.stream.flush()
+
+    def compiling(self, what):
+        """A context manager showing the elapsed compile time."""
+        progress = self
+
+        class _Timer:
+            def __enter__(self):
+                self.start = time.perf_counter()
+                if progress.live:
+                    progress._stop.clear()
+                    self.thread = threading.Thread(target=self._tick, daemon=True)
+                    self.thread.start()
+                return self
+
+            def _tick(self):
+                while not progress._stop.wait(0.5):
+                    progress._write(f"compiling {what}: {time.perf_counter() - self.start:.0f} s")
+
+            def __exit__(self, *exc):
+                self.seconds = time.perf_counter() - self.start
+                if progress.live:
+                    progress._stop.set()
+                    self.thread.join()
+                    progress._write(f"compiled {what} in {self.seconds:.1f} s\n")
+
+        return _Timer()
+
+    def iteration(self, iteration, record):
+        """The solver's per-iteration callback (``Options.progress``)."""
+        objective, violation, stationarity, barrier, step, regularisation = (float(v) for v in record)
+        self._write(
+            f"iteration {int(iteration) + 1:5d}  objective {objective:.6e}  violation {violation:.1e}  "
+            f"stationarity {stationarity:.1e}  barrier μ {barrier:.0e}  step {step:.2g}  regularisation {regularisation:.0e}"
+        )
+
+    def done(self):
+        if self.live:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _ironcub_like(urdf):
+    """iRonCub's joints, jets, contact corners and standing pose on another URDF of it."""
+    import jaxmm
+
+    default = jaxmm.load_ironcub()
+    return jaxmm.load_robot(
+        urdf,
+        joints=default.model.joint_names,
+        jet_frames=default.jet_frames,
+        contact_frames=default.contact_frames,
+        standing_configuration=default.standing_configuration,
+        reference_mass=default.reference_mass,
+        check_inertia=False,
+    )
+
+
+def _task(args):
+    """The scenario of ``args`` (name, knots, target, URDF) as a Task. With fewer (or more) knots
+    than published, the time-step bounds scale so that the horizon stays the published one."""
+    from jaxmm import tasks
+
+    overrides = {} if args.target is None else dict(final_com=args.target)
+    robot = None if args.urdf is None else _ironcub_like(args.urdf)
+    return tasks.scenario(args.scenario, robot=robot, knots=args.knots, keep_horizon=True, **overrides)
+
+
+def _solve(task, args, progress):
+    from jaxmm import optimise
+
+    options = optimise.DEFAULT_OPTIONS
+    if args.max_iterations is not None:
+        options = dataclasses.replace(options, max_iterations=args.max_iterations)
+    if progress.live:
+        options = dataclasses.replace(options, progress=progress.iteration)
+    with progress.compiling(f"the solve of {task.name} (N = {task.n_intervals})") as compiling:
+        run = optimise.compile_solve(task, options=options)
+    start = time.perf_counter()
+    result = run()
+    result.solution.status.block_until_ready()
+    progress.done()
+    return result, compiling.seconds, time.perf_counter() - start
+
+
+def _solve_command(args):
+    from jaxmm import analysis, io
+
+    progress = Progress(Progress.detect(args.quiet))
+    task = _task(args)
+    out = pathlib.Path(args.out if args.out is not None else pathlib.Path("jaxmm-results") / task.name)
+    out.mkdir(parents=True, exist_ok=True)
+    result, compile_time, solve_time = _solve(task, args, progress)
+    report = analysis.validate(task, result.trajectory)
+    solution = result.solution
+    print(f"{task.name}: N = {task.n_intervals}, {result.status.message}")
+    print(
+        f"  {int(solution.iterations)} iterations, compile {compile_time:.1f} s, solve {solve_time:.1f} s, "
+        f"objective {float(solution.objective):.6e}, max violation {float(solution.violation):.1e}"
+    )
+    print(f"  validate: {'ok' if report.ok else 'FAILED: ' + ', '.join(c.name for c in report.failed)}")
+    written = [io.save(out / "solution.npz", task, result)]
+    (out / "validation.txt").write_text(str(report) + "\n")
+    summary = dict(
+        scenario=task.name, knots=task.n_intervals, status=result.status.name, message=result.status.message,
+        iterations=int(solution.iterations), compile_seconds=compile_time, solve_seconds=solve_time,
+        objective=float(solution.objective), violation=float(solution.violation),
+        violation_per_family={k: float(v) for k, v in result.violation_per_family.items()},
+        validate_ok=report.ok, failed_checks=[c.name for c in report.failed],
+        flight_knots=list(report.flight_knots), total_time=float(result.trajectory.total_time),
+    )
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    written += [out / "validation.txt", out / "summary.json"]
+    if not args.no_figures:
+        from jaxmm import animation, plots
+
+        written += list(plots.save_figures(task, result, out).values())
+        if not args.no_animation:
+            written.append(animation.animate(task, result.trajectory, out / "motion.gif"))
+    print(f"  wrote {len(written)} files to {out}/: " + ", ".join(pathlib.Path(p).name for p in written))
+    return 0 if result.status.name == "CONVERGED" and report.ok else 1
+
+
+def _scenarios_command(args):
+    from jaxmm import tasks
+
+    print(f"{'scenario':22s} {'N':>4s}  {'horizon [s]':12s} {'initial CoM [m]':18s} {'final CoM [m]':18s} {'mid height':10s} jets  description")
+    for name, spec in tasks.SCENARIOS.items():
+        n, defaults = spec["knots"], tasks.build_task.__kwdefaults__
+        horizon = f"{defaults['min_dt'] * n:.1f}–{defaults['max_dt'] * n:.1f}"
+        mid = f"≥ {spec['mid_com_height']:.2f} m" if spec.get("mid_com_height") is not None else "-"
+        fmt = lambda v: "(" + ", ".join(f"{x:g}" for x in v) + ")"  # noqa: E731
+        print(
+            f"{name.replace('_', '-'):22s} {n:4d}  {horizon:12s} {fmt(spec['initial_com']):18s} {fmt(spec['final_com']):18s} "
+            f"{mid:10s} {'yes' if spec.get('jets', True) else 'no ':4s}  {spec['description']}"
+        )
+
+
+def _compare_command(args):
+    try:
+        from jaxmm.reference import solve_ipopt
+    except ImportError as error:
+        raise ImportError(f"`jaxmm compare` needs the reference extra (pip install 'jaxmm[reference]'): {error}") from None
+    import jaxmm
+    from jaxmm import analysis
+    from jaxmm.tasks import initial_guess
+
+    progress = Progress(Progress.detect(args.quiet))
+    task = _task(args)
+    result, compile_time, solve_time = _solve(task, args, progress)
+    logging.getLogger("yourdfpy").setLevel(logging.ERROR)
+    with tempfile.TemporaryDirectory() as directory:
+        urdf = pathlib.Path(args.urdf) if args.urdf else pathlib.Path(directory) / "robot.urdf"
+        if not args.urdf:
+            urdf.write_bytes(jaxmm.assemble_urdf(jaxmm.robots.ironcub_description()).write_xml_string())
+        if progress.live:
+            progress.stream.write("solving with IPOPT (CasADi reference)…\n")
+        max_iter = {} if args.max_iterations is None else dict(max_iter=args.max_iterations)
+        trajectory, info = solve_ipopt(task, urdf, initial_guess(task), tol=1e-4, **max_iter)
+    ours_report, ipopt_report = analysis.validate(task, result.trajectory), analysis.validate(task, trajectory)
+    rows = [
+        ("", "jaxmm", "IPOPT"),
+        ("status", result.status.name, str(info["status"])),
+        ("iterations", str(int(result.solution.iterations)), str(info["iterations"])),
+        ("build/compile [s]", f"{compile_time:.1f}", f"{info['build_time'] + info.get('setup_time', 0.0):.1f}"),
+        ("solve [s]", f"{solve_time:.1f}", f"{info['wall_time']:.1f}"),
+        ("objective", f"{float(result.solution.objective):.8e}", f"{info['objective']:.8e}"),
+        ("max violation", f"{float(result.solution.violation):.1e}", f"{info['max_violation']:.1e}"),
+        ("validate", "ok" if ours_report.ok else "FAILED", "ok" if ipopt_report.ok else "FAILED"),
+    ]
+    print(f"{task.name}, N = {task.n_intervals}, from the published initial guess")
+    for label, ours, theirs in rows:
+        print(f"  {label:18s} {ours:>18s} {theirs:>18s}")
+    print(f"  IPOPT solve time / ours: {info['wall_time'] / solve_time:.3g}×")
+    return 0
+
+
+def _robot_command(args):
     from jaxmm.robots import load_ironcub, load_robot
 
-    if args.urdf is None:
-        robot = load_ironcub()
-    else:
-        robot = load_robot(args.urdf, joints=args.joints)
+    robot = load_ironcub() if args.urdf is None else load_robot(args.urdf, joints=args.joints)
     print(robot.summary())
 
 
+def _scenario_arguments(parser):
+    parser.add_argument("scenario", help="take-off, take-off-and-landing, walk-to-fly or jumping")
+    parser.add_argument("--knots", type=int, help="N (default: the published one; the horizon is kept)")
+    parser.add_argument("--target", type=float, nargs=3, metavar=("X", "Y", "Z"), help="final CoM [m]")
+    parser.add_argument("--urdf", help="another URDF of iRonCub (same joint, jet and contact frame names)")
+    parser.add_argument("--max-iterations", type=int, help="solver iteration limit (default 1500)")
+    parser.add_argument("--quiet", action="store_true", help="no progress display")
+
+
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="jaxmm", description=__doc__)
+    parser = argparse.ArgumentParser(prog="jaxmm", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
+    solve = commands.add_parser("solve", help="solve a scenario; write solution, report, figures and animation")
+    _scenario_arguments(solve)
+    solve.add_argument("--out", help="output directory (default: jaxmm-results/<scenario>)")
+    solve.add_argument("--no-figures", action="store_true", help="write no figures and no animation")
+    solve.add_argument("--no-animation", action="store_true", help="write the figures but no animation")
+    solve.set_defaults(run=_solve_command)
+    scenarios = commands.add_parser("scenarios", help="list the published scenarios and their settings")
+    scenarios.set_defaults(run=_scenarios_command)
+    compare = commands.add_parser("compare", help="solve a scenario with jaxmm and with IPOPT, side by side")
+    _scenario_arguments(compare)
+    compare.set_defaults(run=_compare_command)
     robot = commands.add_parser("robot", help="print a robot summary (default: iRonCub)")
     robot.add_argument("--urdf", help="a URDF file (default: the assembled iRonCub)")
     robot.add_argument("--joints", nargs="+", help="optimised joints (default: all moving joints)")
-    robot.set_defaults(run=_robot)
+    robot.set_defaults(run=_robot_command)
     args = parser.parse_args(argv)
+    if getattr(args, "knots", None) is not None and args.knots < 2:
+        parser.error(f"--knots must be at least 2, got {args.knots}")
     try:
-        args.run(args)
-    except (ValueError, KeyError, FileNotFoundError, TypeError) as error:
+        return args.run(args) or 0
+    except ERRORS as error:
         print(f"jaxmm {args.command}: error: {error}", file=sys.stderr)
         return 2
-    return 0

@@ -78,3 +78,18 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
         return _solve(task, guess, options, warm_start.solution.multipliers, warm_start.solution.bound_multipliers)
     guess = initial_guess(task) if guess is None else guess
     return _solve(task, guess, options, None, None)
+
+
+def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
+    """Compile the solve of ``task`` ahead of time, as ``solve_task`` would run it, without
+    running it: returns ``run``, a function of no arguments → ``TaskSolution``. For callers that
+    report (or time) compiling apart from solving; the compiled program is also the one
+    ``solve_task`` reuses for every task of the same structure."""
+    multipliers = bound_multipliers = None
+    if warm_start is not None:
+        guess = warm_start.trajectory if guess is None else guess
+        options = dataclasses.replace(options, **WARM_START)
+        multipliers, bound_multipliers = warm_start.solution.multipliers, warm_start.solution.bound_multipliers
+    guess = initial_guess(task) if guess is None else guess
+    compiled = _solve.lower(task, guess, options, multipliers, bound_multipliers).compile()
+    return lambda: compiled(task, guess, multipliers, bound_multipliers)

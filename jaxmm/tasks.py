@@ -53,7 +53,8 @@ SCENARIOS = {
 }
 
 
-def _canonical(name):
+def canonical_name(name):
+    """The ``SCENARIOS`` key of a scenario name ("take-off" → "take_off"); ValueError if unknown."""
     key = name.replace("-", "_")
     if key not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r}; scenarios: {', '.join(SCENARIOS)}")
@@ -173,15 +174,21 @@ def _vector(value, size, label):
     return _array(value, (size,), label)
 
 
-def scenario(name, robot=None, knots=None, **overrides):
+def scenario(name, robot=None, knots=None, keep_horizon=False, **overrides):
     """One of the four published scenarios on iRonCub, as a ``Task``.
 
     name: "take_off", "take_off_and_landing", "walk_to_fly" or "jumping" (hyphens allowed).
     robot: default the assembled iRonCub. knots: N (default: the published one).
-    overrides: any ``build_task`` keyword (targets, weights, bounds, options); a ``weights``
-    dict is merged into the published weights.
+    keep_horizon: with N knots other than the published N₀, scale the time-step bounds by N₀ / N
+    so that the horizon range stays the published one (take-off with 14 knots: Δt in
+    0.25–0.5 s). overrides: any ``build_task`` keyword (targets, weights, bounds, options); a
+    ``weights`` dict is merged into the published weights.
     """
-    key = _canonical(name)
+    key = canonical_name(name)
+    if keep_horizon and knots is not None:
+        scale = SCENARIOS[key]["knots"] / knots
+        defaults = build_task.__kwdefaults__
+        overrides = dict(dict(min_dt=defaults["min_dt"] * scale, max_dt=defaults["max_dt"] * scale), **overrides)
     spec = dict(SCENARIOS[key])
     spec.pop("description")
     uses_jets = spec.pop("jets", True)

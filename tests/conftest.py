@@ -8,11 +8,19 @@ rather than loosening any tolerance.
 import os
 import pathlib
 
+import jax
 import numpy as np
 import pytest
 
 import jaxmm
 from jaxmm import so3
+
+# Compiled programs persist on disk, so the test processes (xdist workers, notebook kernels) that
+# solve the same problem structure compile it once per run (and once per machine, across runs).
+CACHE = os.environ.setdefault(
+    "JAX_COMPILATION_CACHE_DIR", str(pathlib.Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax")
+)
+jax.config.update("jax_compilation_cache_dir", CACHE)
 
 SHARED = pathlib.Path(os.environ.get("JAXMM_SHARED", pathlib.Path(__file__).resolve().parents[2] / "shared"))
 IRONCUB_URDF = SHARED / "robots" / "ironcub-mk1_1" / "model.urdf"

@@ -1,9 +1,15 @@
-"""The command line: `jaxmm robot` prints the summary; bad input exits 2 with a message."""
+"""The command line: every command does its job end to end; bad input exits 2 with a message
+and writes nothing."""
 
+import io as io_module
+import json
 import re
 
+import PIL.Image
+import pytest
+
 import jaxmm
-from jaxmm.cli import main
+from jaxmm.cli import Progress, main
 
 
 def test_robot_summary_of_default_robot(capsys):
@@ -20,3 +26,77 @@ def test_robot_summary_of_default_robot(capsys):
 def test_robot_summary_of_a_missing_urdf(capsys):
     assert main(["robot", "--urdf", "/no/such.urdf"]) == 2
     assert "URDF file not found: /no/such.urdf" in capsys.readouterr().err
+
+
+def test_scenarios_lists_the_four_published_settings(capsys):
+    assert main(["scenarios"]) == 0
+    out = capsys.readouterr().out
+    for name, knots in (("take-off ", 70), ("take-off-and-landing", 200), ("walk-to-fly", 100), ("jumping", 60)):
+        assert re.search(rf"^{name}\s+{knots}\s", out, re.MULTILINE), name
+
+
+def test_solve_writes_solution_report_figures_and_animation(tmp_path, capsys):
+    from jaxmm import io
+
+    out = tmp_path / "run"
+    code = main(["solve", "take-off", "--knots", "14", "--out", str(out), "--quiet"])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    assert "converged" in printed and "validate: ok" in printed
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "CONVERGED" and summary["validate_ok"] and summary["knots"] == 14
+    task, result = io.load(out / "solution.npz")
+    assert task.n_intervals == 14 and result.status.name == "CONVERGED"
+    assert float(task.params.min_dt) == 0.25 and float(task.params.max_dt) == 0.5  # the published horizon kept
+    assert "re-simulated CoM" in (out / "validation.txt").read_text()
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert len(pngs) == 7 and all((out / p).stat().st_size > 10_000 for p in pngs), pngs
+    with PIL.Image.open(out / "motion.gif") as gif:
+        assert gif.n_frames > 30  # 8 fps over the 3.5–7 s horizon
+
+
+def test_progress_is_shown_on_a_terminal_and_silent_otherwise():
+    stream = io_module.StringIO()
+    progress = Progress(True, stream)
+    with progress.compiling("something") as timer:
+        pass
+    progress.iteration(4, [5.36e6, 1e-3, 2e-2, 1e-4, 0.5, 0.0])
+    progress.done()
+    text = stream.getvalue()
+    assert "compiled something in" in text and timer.seconds >= 0
+    assert "iteration     5  objective 5.360000e+06  violation 1.0e-03" in text
+    assert Progress.detect(quiet=False) is False  # pytest captures stderr: not a terminal
+    quiet = io_module.StringIO()
+    silent = Progress(False, quiet)
+    with silent.compiling("something"):
+        pass
+    silent.done()
+    assert quiet.getvalue() == ""
+
+
+def test_compare_prints_both_solvers_side_by_side(capsys):
+    pytest.importorskip("casadi", reason="the IPOPT reference needs the reference extra")
+    assert main(["compare", "take-off", "--knots", "14", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"status\s+CONVERGED\s+Solve_Succeeded", out), out
+    assert re.search(r"validate\s+ok\s", out), out
+    ours, theirs = (float(v) for v in re.search(r"objective\s+(\S+)\s+(\S+)", out).groups())
+    assert abs(ours - theirs) <= 1e-4 * abs(theirs)  # the same optimum (measured 1.8e-5 apart)
+    assert "IPOPT solve time / ours" in out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["solve", "hover"], "unknown scenario 'hover'"),
+    (["solve", "take-off", "--target", "9", "0", "0.8", "--no-figures"], "outside the workspace"),
+    (["solve", "take-off", "--urdf", "/no/such.urdf"], "URDF file not found: /no/such.urdf"),
+])
+def test_solve_rejects_bad_input_with_a_message_and_no_output(argv, message, tmp_path, capsys):
+    assert main(argv + ["--out", str(tmp_path / "out")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_knots_below_two_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as exit:
+        main(["solve", "take-off", "--knots", "1"])
+    assert exit.value.code == 2 and "--knots must be at least 2" in capsys.readouterr().err

@@ -1,0 +1,129 @@
+"""Saved solutions: a round trip keeps every number and the structure; foreign, corrupt and
+mismatched files are refused with a clear error; a failed save loses nothing."""
+
+import dataclasses
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from jaxmm import io
+
+
+@pytest.fixture(scope="module")
+def saved(solved_take_off, tmp_path_factory):
+    task, result = solved_take_off
+    path = tmp_path_factory.mktemp("saved") / "take_off.npz"
+    assert io.save(path, task, result) == os.fspath(path)
+    return path, task, result
+
+
+def _leaves_equal(a, b):
+    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(a)
+    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(b)
+    assert tree_a == tree_b
+    for (path, x), (_, y) in zip(paths_a, paths_b):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.shape == y.shape, jax.tree_util.keystr(path)
+        np.testing.assert_array_equal(x, y, err_msg=jax.tree_util.keystr(path))
+
+
+def test_round_trip_keeps_every_number_and_the_structure(saved):
+    path, task, result = saved
+    loaded_task, loaded = io.load(path)
+    _leaves_equal(loaded.trajectory, result.trajectory)
+    _leaves_equal(loaded.solution, result.solution)  # multipliers and bound multipliers: a warm start
+    _leaves_equal(loaded_task.params, task.params)
+    _leaves_equal(loaded_task.weights, task.weights)
+    assert jax.tree_util.tree_structure(loaded_task) == jax.tree_util.tree_structure(task)  # same compiled solve
+    assert loaded.status == result.status
+    assert loaded.violation_per_family.keys() == result.violation_per_family.keys()
+
+
+def test_the_header_is_readable_without_jax(saved):
+    path, task, result = saved
+    header = io.read_header(path)
+    assert header["format"] == io.FORMAT and header["version"] == io.VERSION
+    assert header["status"]["name"] == result.status.name
+    assert header["task"]["name"] == "take_off" and header["task"]["n_intervals"] == task.n_intervals
+    assert header["objective"] == float(result.solution.objective)
+    assert header["robot"]["fingerprint"] == io.robot_fingerprint(task.robot)
+    with np.load(path, allow_pickle=False) as data:  # plain arrays only: no pickles
+        assert "trajectory.knots.com" in data.files
+
+
+def test_a_file_from_another_robot_is_refused(saved, ironcub):
+    path, _, _ = saved
+    without_jets = dataclasses.replace(ironcub, jet_frames=())
+    with pytest.raises(io.SolutionFileError, match="another robot: jet_frames"):
+        io.load(path, robot=without_jets)
+    heavier = dataclasses.replace(
+        ironcub, model=dataclasses.replace(ironcub.model, inertial_mass=ironcub.model.inertial_mass.at[0].add(1.0))
+    )
+    with pytest.raises(io.SolutionFileError, match="another robot: mass"):
+        io.load(path, robot=heavier)
+
+
+def _rewrite(source, target, change):
+    with np.load(source, allow_pickle=False) as data:
+        arrays = {key: data[key] for key in data.files}
+    change(arrays)
+    np.savez(target, **arrays)
+    return target
+
+
+def test_corrupt_and_foreign_files_are_refused(saved, tmp_path):
+    path, _, _ = saved
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(path.read_bytes()[:1000])
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a zip file at all")
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, x=np.zeros(3))
+
+    def header(arrays, **changes):
+        content = json.loads(str(arrays["__header__"]))
+        content.update(changes)
+        arrays["__header__"] = np.array(json.dumps(content))
+
+    cases = {
+        truncated: "not a readable .npz",
+        garbage: "not a readable .npz",
+        foreign: "no jaxmm header",
+        _rewrite(path, tmp_path / "format.npz", lambda a: header(a, format="other")): "not a jaxmm solution",
+        _rewrite(path, tmp_path / "version.npz", lambda a: header(a, version=99)): "format version 99",
+        _rewrite(path, tmp_path / "missing.npz", lambda a: a.pop("trajectory.knots.com")): "'trajectory.knots.com' is missing",
+        _rewrite(path, tmp_path / "header.npz", lambda a: a.update(__header__=np.array("{oops"))): "corrupt header",
+    }
+    for file, message in cases.items():
+        with pytest.raises(io.SolutionFileError, match=message):
+            io.load(file)
+    with pytest.raises(FileNotFoundError, match="no solution file"):
+        io.load(tmp_path / "absent.npz")
+
+
+def test_a_failed_save_leaves_the_previous_file_and_no_temporary(saved, tmp_path, monkeypatch):
+    path, task, result = saved
+    target = tmp_path / "solution.npz"
+    target.write_bytes(path.read_bytes())
+    before = target.read_bytes()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        io.save(target, task, result)
+    assert target.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["solution.npz"]
+
+
+def test_save_argument_errors(saved, tmp_path):
+    _, task, result = saved
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        io.save(tmp_path / "no" / "such" / "dir.npz", task, result)
+    with pytest.raises(TypeError, match="needs a Task and a TaskSolution"):
+        io.save(tmp_path / "x.npz", result, task)
+    assert not list(tmp_path.iterdir())

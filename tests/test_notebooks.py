@@ -1,0 +1,41 @@
+"""Every notebook runs top to bottom (nbclient), at reduced sizes set through its ``parameters``
+cell, so that none of them rots. The notebooks as committed keep the outputs of their own
+(larger) parameters."""
+
+import pathlib
+
+import pytest
+
+nbformat = pytest.importorskip("nbformat", reason="the notebooks need the test extra: pip install -e '.[test]'")
+nbclient = pytest.importorskip("nbclient", reason="the notebooks need the test extra: pip install -e '.[test]'")
+
+NOTEBOOKS = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
+
+# Appended to each notebook's parameters cell: the smallest sizes at which every cell still
+# does its job (the 14-knot take-off is the problem the test suite already compiles).
+CI_PARAMETERS = {
+    "01_robot_model": "SAMPLES = 5",
+    "02_take_off": "KNOTS = 14",
+    "03_all_scenarios": "KNOTS = {'take_off': 14, 'jumping': 15, 'walk_to_fly': 10, 'take_off_and_landing': 10}\nMAX_ITERATIONS = 40",
+    "04_multistart": "KNOTS = 14\nGUESSES = 2\nMAX_ITERATIONS = 25",
+    "05_weight_tuning": "KNOTS = 14\nSTEPS = 1",
+    "06_ipopt_reference": "KNOTS = 14",
+}
+
+
+def test_every_notebook_has_ci_parameters():
+    assert sorted(p.stem for p in NOTEBOOKS.glob("*.ipynb")) == sorted(CI_PARAMETERS)
+
+
+@pytest.mark.parametrize("name", sorted(CI_PARAMETERS))
+def test_notebook_runs_top_to_bottom(name, tmp_path):
+    notebook = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
+    parameters = [c for c in notebook.cells if "parameters" in c.metadata.get("tags", [])]
+    assert len(parameters) == 1, f"{name}: one cell tagged 'parameters' sets the sizes"
+    parameters[0].source += "\n# CI sizes (tests/test_notebooks.py)\n" + CI_PARAMETERS[name]
+    client = nbclient.NotebookClient(
+        notebook, timeout=1800, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
+    )
+    client.execute()  # raises CellExecutionError, with the cell and its traceback, on any error
+    errors = [o for c in notebook.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.output_type == "error"]
+    assert not errors
