@@ -139,7 +139,7 @@ def _solve_command(args):
         f"  {int(solution.iterations)} iterations, compile {compile_time:.1f} s, solve {solve_time:.1f} s, "
         f"objective {float(solution.objective):.6e}, max violation {float(solution.violation):.1e}"
     )
-    print(f"  validate: {'ok' if report.ok else 'FAILED: ' + ', '.join(c.name for c in report.failed)}")
+    print(f"  validate: {'ok' if report.ok else 'FAILED: ' + ', '.join(report.failed)}")
     written = [io.save(out / "solution.npz", task, result)]
     (out / "validation.txt").write_text(str(report) + "\n")
     summary = dict(
@@ -147,7 +147,7 @@ def _solve_command(args):
         iterations=int(solution.iterations), compile_seconds=compile_time, solve_seconds=solve_time,
         objective=float(solution.objective), violation=float(solution.violation),
         violation_per_family={k: float(v) for k, v in result.violation_per_family.items()},
-        validate_ok=report.ok, failed_checks=[c.name for c in report.failed],
+        validate_ok=report.ok, failed_checks=list(report.failed),
         flight_knots=list(report.flight_knots), total_time=float(result.trajectory.total_time),
     )
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

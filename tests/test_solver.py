@@ -226,3 +226,13 @@ def test_a_non_finite_value_stops_the_solve_with_the_last_finite_iterate():
     assert ip.Status(int(solution.status)) is ip.Status.NAN
     leaves = jax.tree.leaves((solution.Z, solution.theta, solution.multipliers, solution.objective))
     assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
+
+
+def test_progress_callback_sees_every_iteration_record():
+    records = []
+    options = ip.Options(tolerance=1e-9, stationarity=1e-9, progress=lambda i, r: records.append((int(i), np.asarray(r))))
+    solution = solve(_integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=options)
+    jax.effects_barrier()
+    count = int(solution.iterations)
+    assert [i for i, _ in records] == list(range(count))
+    np.testing.assert_array_equal(np.stack([r for _, r in records]), np.asarray(solution.history)[:count])

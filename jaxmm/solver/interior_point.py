@@ -593,8 +593,6 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         record = jnp.stack([
             stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w,
         ])
-        if options.progress is not None:
-            jax.debug.callback(options.progress, state.iterations, record)
         status = jnp.where(
             converged, int(Status.CONVERGED),
             jnp.where(rejections < options.max_rejections, int(Status.RUNNING),
@@ -616,6 +614,8 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
             history=state.history.at[state.iterations].set(jnp.stack([cost_now, v_now, error0, mu, 0.0, delta_w]))))
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves((new.P, new.y, new.zl, new.zu))]))
         new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
+        if options.progress is not None:  # the row the history keeps for this iteration
+            jax.debug.callback(options.progress, state.iterations, new.history[state.iterations])
         return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)),
                                    iterations=state.iterations + 1)
 
