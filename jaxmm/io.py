@@ -29,6 +29,7 @@ import zipfile
 import jax
 import numpy as np
 
+from jaxmm.centroidal import total_mass
 from jaxmm.optimise import TaskSolution
 from jaxmm.solver import interior_point as ip
 from jaxmm.transcription.problem import Task, TaskParams, Weights
@@ -102,8 +103,6 @@ def robot_fingerprint(robot):
 
 
 def _robot_header(robot):
-    from jaxmm.centroidal import total_mass
-
     return dict(
         name=robot.name,
         joints=list(robot.model.joint_names),
