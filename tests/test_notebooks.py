@@ -41,9 +41,17 @@ def _run(name, directory):
     assert not errors
 
 
+# The tuning studies solve and differentiate a dozen times even at CI sizes (10 minutes on one
+# core): like the other robot-scale tuning tests, they run by hand with ``pytest -m slow``.
+SLOW = {"05_weight_tuning"}
+
+
 def _notebook_test(name):
     def test_runs_top_to_bottom(self, tmp_path):
         _run(name, tmp_path)
+
+    if name in SLOW:
+        test_runs_top_to_bottom = pytest.mark.slow(test_runs_top_to_bottom)
 
     return type(f"TestNotebook_{name}", (), {"test_runs_top_to_bottom": test_runs_top_to_bottom})
 
