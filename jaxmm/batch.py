@@ -140,6 +140,10 @@ def _check_shapes(trajectory, expected, batch, label):
         if jnp.shape(leaf) != batch + want.shape:
             raise ValueError(f"{label}{jax.tree_util.keystr(path)} has shape {jnp.shape(leaf)}; the task needs "
                              f"{batch + want.shape}" + (f" = (B,) + {want.shape}" if batch else ""))
+        if not isinstance(leaf, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(leaf))):
+            bad = np.unique(np.nonzero(~np.isfinite(np.asarray(leaf)))[0]).tolist() if batch else []
+            raise ValueError(f"{label}{jax.tree_util.keystr(path)} has non-finite entries (NaN or inf)"
+                             + (f" in instances {bad}" if batch else ""))
 
 
 def _check_guesses(guesses, expected, size=None):

@@ -1,24 +1,54 @@
 """Configurations q = (p, ρ, s) and velocities ν = (ṗ, ω, ṡ); conventions in ``jaxmm.model``."""
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxmm import so3
 
+# |‖ρ‖ − 1| accepted in a configuration given by value: the kinematics normalise ρ, so a solver's
+# drift is harmless; a norm off by more than this is a mistake (angles, zeros, a wrong layout).
+QUATERNION_TOLERANCE = 1e-3
+
+
+def _check_real(x, label):
+    if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
+        raise TypeError(f"{label} must be a real (float) array, got dtype {x.dtype}")
+
 
 def check_configuration(model, q):
-    """Return q as a float array after checking its shape (7 + n,); raises ValueError."""
+    """Return q as a float array after checking its shape (7 + n,) and dtype; raises
+    ValueError (TypeError for a non-real dtype).
+
+    A q given by value (not traced by ``jax.jit``/``grad``/``vmap``) is also checked for
+    non-finite entries and a base quaternion ρ = q[3:7] of norm 1 within
+    ``QUATERNION_TOLERANCE``. Traced q are not checked (their values are unknown when tracing).
+    """
     q = jnp.asarray(q)
+    _check_real(q, "configuration q")
     if q.shape != (model.nq,):
         raise ValueError(
             f"configuration q must have shape ({model.nq},) = 3 base position + 4 quaternion "
             f"(x, y, z, w) + {model.n_joints} joints of {model.name!r}, got {q.shape}"
         )
+    if not isinstance(q, jax.core.Tracer):
+        values = np.asarray(q, dtype=float)
+        if not np.all(np.isfinite(values)):
+            bad = np.flatnonzero(~np.isfinite(values)).tolist()
+            raise ValueError(f"configuration q has non-finite entries at indices {bad}")
+        norm = float(np.linalg.norm(values[3:7]))
+        if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+            raise ValueError(
+                f"the base quaternion q[3:7] = {values[3:7].tolist()} has norm {norm:.6g}, not 1 (x, y, z, w): "
+                "divide it by its norm"
+            )
     return q
 
 
 def check_velocity(model, nu):
     """Return ν as an array after checking its shape (6 + n,); raises ValueError."""
     nu = jnp.asarray(nu)
+    _check_real(nu, "velocity ν")
     if nu.shape != (model.nv,):
         raise ValueError(
             f"velocity ν must have shape ({model.nv},) = 3 linear + 3 angular (world frame) "

@@ -30,9 +30,8 @@ import functools
 
 import jax
 
-from jaxmm.optimise import DEFAULT_OPTIONS, WARM_START, task_solution
+from jaxmm.optimise import DEFAULT_OPTIONS, prepare, task_solution
 from jaxmm.solver import sensitivity
-from jaxmm.tasks import initial_guess
 from jaxmm.transcription import nlp as transcription
 
 
@@ -58,13 +57,8 @@ def solve_task_differentiable(task, guess=None, options=DEFAULT_OPTIONS, warm_st
     ``solution.theta``, ``solution.multipliers``, ``solution.objective`` and the violations;
     the other statistics carry no gradient.
     """
-    if warm_start is not None:
-        guess = warm_start.trajectory if guess is None else guess
-        options = dataclasses.replace(options, **WARM_START)
-        solution = warm_start.solution
-        return _solve(task, guess, options, settings, solution.multipliers, solution.bound_multipliers)
-    guess = initial_guess(task) if guess is None else guess
-    return _solve(task, guess, options, settings, None, None)
+    guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
+    return _solve(task, guess, options, settings, multipliers, bound_multipliers)
 
 
 @jax.jit

@@ -16,6 +16,7 @@ from jaxmm.solver import interior_point as ip
 from jaxmm.tasks import initial_guess
 from jaxmm.transcription import nlp as transcription
 from jaxmm.transcription import stagewise
+from jaxmm.transcription.problem import Task
 from jaxmm.transcription.variables import Trajectory
 
 
@@ -55,13 +56,56 @@ def task_solution(task, nlp, solution):
 
 
 @functools.partial(jax.jit, static_argnames="options")
-def _solve(task, guess, options, multipliers, bound_multipliers):
+def _solve(task, guess, options, multipliers, bound_multipliers, scaling=None):
     nlp = transcription.stagewise_nlp(task)
     Z0, theta0 = transcription.to_variables(task, guess)
-    return task_solution(task, nlp, ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers))
+    return task_solution(task, nlp, ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers, scaling))
 
 
-def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
+def check_guess(task, guess, label="guess"):
+    """Raise a ValueError/TypeError naming the problem unless ``guess`` is a ``Trajectory`` with
+    the shapes ``task`` needs (those of ``tasks.initial_guess(task)``), real dtypes and, when
+    given by value (not traced), finite entries."""
+    if not isinstance(guess, Trajectory):
+        raise TypeError(f"{label} must be a Trajectory (see tasks.initial_guess), got {type(guess).__name__}")
+    expected = jax.eval_shape(initial_guess, task)
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(guess)
+    if treedef != jax.tree.structure(expected):
+        raise ValueError(f"{label} does not have the structure of this task's trajectories")
+    for (path, leaf), want in zip(leaves, jax.tree.leaves(expected)):
+        where = f"{label}{jax.tree_util.keystr(path)}"
+        if jnp.shape(leaf) != want.shape:
+            raise ValueError(f"{where} has shape {jnp.shape(leaf)}; the task ({task.n_knots} knots) needs {want.shape}")
+        dtype = jnp.result_type(leaf)
+        if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+            raise TypeError(f"{where} has dtype {dtype}; a real (float) array is needed")
+        if not isinstance(leaf, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(leaf))):
+            raise ValueError(f"{where} has non-finite entries (NaN or inf)")
+
+
+def prepare(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
+    """The arguments of the compiled solve, (guess, options, multipliers, bound_multipliers),
+    after checking them: ``guess`` defaults to the warm start's trajectory, else to the
+    published initial guess; a warm start brings its multipliers and ``WARM_START``'s barrier
+    settings."""
+    if not isinstance(task, Task):
+        raise TypeError(f"task must be a Task (see tasks.scenario, tasks.make_task), got {type(task).__name__}")
+    if not isinstance(options, ip.Options):
+        raise TypeError(f"options must be interior_point.Options, got {type(options).__name__}")
+    multipliers = bound_multipliers = None
+    if warm_start is not None:
+        if not isinstance(warm_start, TaskSolution):
+            raise TypeError(f"warm_start must be a TaskSolution, got {type(warm_start).__name__}")
+        check_guess(task, warm_start.trajectory, "warm_start.trajectory")
+        guess = warm_start.trajectory if guess is None else guess
+        options = dataclasses.replace(options, **WARM_START)
+        multipliers, bound_multipliers = warm_start.solution.multipliers, warm_start.solution.bound_multipliers
+    guess = initial_guess(task) if guess is None else guess
+    check_guess(task, guess)
+    return guess, options, multipliers, bound_multipliers
+
+
+def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_scaling=False):
     """Optimise ``task`` (a ``Task``) from ``guess`` (a ``Trajectory``; default: the published
     initial guess). Returns a ``TaskSolution``; check ``.status`` and ``jaxmm.analysis.validate``.
 
@@ -71,13 +115,20 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
 
     The default tolerances: constraint violation ≤ 1e-6 (100× tighter than the paper's IPOPT
     ``constr_viol_tol``) and scaled stationarity ≤ 1e-4 (the paper's IPOPT ``tol``).
+    same_scaling: solve in the warm start's cost and row scaling instead of the one computed at
+    the new starting point, so that the answers to nearby tasks differ only through the task
+    (what finite differences of re-solves need: the barrier problem at μ > 0 depends on the
+    cost factor, which follows the weights).
+
+    Raises TypeError/ValueError naming the problem for a guess or warm start of the wrong type,
+    shape or dtype, or with non-finite entries.
     """
-    if warm_start is not None:
-        guess = warm_start.trajectory if guess is None else guess
-        options = dataclasses.replace(options, **WARM_START)
-        return _solve(task, guess, options, warm_start.solution.multipliers, warm_start.solution.bound_multipliers)
-    guess = initial_guess(task) if guess is None else guess
-    return _solve(task, guess, options, None, None)
+    arguments = prepare(task, guess, options, warm_start)
+    if same_scaling:
+        if warm_start is None:
+            raise ValueError("same_scaling=True needs a warm_start (whose scaling to keep)")
+        return _solve(task, *arguments, warm_start.solution.scaling)
+    return _solve(task, *arguments)
 
 
 def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
@@ -85,11 +136,6 @@ def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
     running it: returns ``run``, a function of no arguments → ``TaskSolution``. For callers that
     report (or time) compiling apart from solving; the compiled program is also the one
     ``solve_task`` reuses for every task of the same structure."""
-    multipliers = bound_multipliers = None
-    if warm_start is not None:
-        guess = warm_start.trajectory if guess is None else guess
-        options = dataclasses.replace(options, **WARM_START)
-        multipliers, bound_multipliers = warm_start.solution.multipliers, warm_start.solution.bound_multipliers
-    guess = initial_guess(task) if guess is None else guess
+    guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
     compiled = _solve.lower(task, guess, options, multipliers, bound_multipliers).compile()
     return lambda: compiled(task, guess, multipliers, bound_multipliers)

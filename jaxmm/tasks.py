@@ -112,8 +112,24 @@ def build_task(
             raise ValueError(
                 f"{label} {com.tolist()} is outside the workspace bounds (|x|, |y| ≤ {com_xy_limit} m, z ≥ 0)"
             )
-    if not min_dt > 0 or not max_dt >= min_dt:
-        raise ValueError(f"time-step bounds must satisfy 0 < min_dt ≤ max_dt, got {min_dt}, {max_dt}")
+    if not (min_dt > 0 and np.isfinite(max_dt) and max_dt >= min_dt):
+        raise ValueError(f"time-step bounds must satisfy 0 < min_dt ≤ max_dt < ∞, got {min_dt}, {max_dt}")
+    for label, value in (("friction_coefficient", friction_coefficient), ("jet_com_bound", jet_com_bound),
+                         ("joint_velocity_limit", joint_velocity_limit),
+                         ("base_linear_velocity_limit", base_linear_velocity_limit),
+                         ("base_angular_velocity_limit", base_angular_velocity_limit),
+                         ("com_xy_limit", com_xy_limit)):
+        if not (np.ndim(value) == 0 and np.isfinite(value) and value > 0):
+            raise ValueError(f"{label} must be a finite positive number, got {value!r}")
+    for label, value in (("boundary_tolerance", boundary_tolerance),
+                         ("final_orientation_tolerance", final_orientation_tolerance)):
+        if not (np.ndim(value) == 0 and np.isfinite(value) and value >= 0):
+            raise ValueError(f"{label} must be a finite non-negative number, got {value!r}")
+    if mid_com_height is not None and not np.isfinite(mid_com_height):
+        raise ValueError(f"mid_com_height must be finite (or None: no mid-horizon target), got {mid_com_height!r}")
+    throttle = _vector(throttle_range, 2, "throttle_range")
+    if not throttle[0] <= throttle[1]:
+        raise ValueError(f"throttle_range must be (lower, upper) with lower ≤ upper, got {throttle.tolist()}")
     if nj:
         if jet_coefficients is None or max_thrust is None:
             raise ValueError(f"robot {robot.name!r} has {nj} jets: jet_coefficients (nj, 10) and max_thrust (nj,) are required")
@@ -135,7 +151,7 @@ def build_task(
         corner_com_bound=jnp.asarray(_vector(corner_com_bound, 3, "corner_com_bound")),
         jet_com_bound=jnp.asarray(float(jet_com_bound)),
         max_thrust=jnp.asarray(max_thrust),
-        throttle_range=jnp.asarray(_vector(throttle_range, 2, "throttle_range")),
+        throttle_range=jnp.asarray(throttle),
         jet_coefficients=jnp.asarray(jet_coefficients),
         joint_limits=jnp.asarray(joint_limits),
         joint_velocity_limit=jnp.asarray(float(joint_velocity_limit)),

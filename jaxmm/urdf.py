@@ -93,13 +93,16 @@ def _validate_structure(robot, check_inertia):
         inertia = np.asarray(inertial.inertia if inertial.inertia is not None else np.zeros((3, 3)))
         if not np.all(np.isfinite(inertia)):
             raise URDFError(f"link {link.name!r} has a non-finite inertia")
-        if check_inertia and inertial.mass > 0:
+        if check_inertia and np.any(inertia):
             eig = np.linalg.eigvalsh(0.5 * (inertia + inertia.T))
             if eig.min() < -1e-12 * max(1.0, eig.max()):
                 raise URDFError(
                     f"link {link.name!r} has an inertia that is not positive semi-definite "
                     f"(eigenvalues {eig}); pass check_inertia=False to load it anyway"
                 )
+    masses = [link.inertial.mass for link in robot.links if link.inertial is not None and link.inertial.mass]
+    if not sum(masses) > 0:
+        raise URDFError("the robot's links have no mass (total mass 0): its centre of mass is undefined")
     return roots[0]
 
 
@@ -180,8 +183,10 @@ def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=T
     inertial_names, inertial_body, masses, coms, inertias = [], [], [], [], []
     for link in robot.links:
         inertial = link.inertial
-        if inertial is None or inertial.mass is None or inertial.mass == 0:
+        if inertial is None or inertial.mass is None:
             continue
+        if inertial.mass == 0 and (inertial.inertia is None or not np.any(inertial.inertia)):
+            continue  # nothing to carry; a massless link with a rotational inertia keeps it, as in Pinocchio
         body, T_link = link_body[link.name]
         T = T_link @ _transform(inertial.origin)
         R = T[:3, :3]

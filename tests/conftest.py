@@ -147,3 +147,20 @@ def solved_take_off():
 
     task = tasks.scenario("take_off", **REDUCED_TAKE_OFF)
     return task, solve_task(task)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """How many bad-input cases and fuzzing examples ran (their tests record the counts)."""
+    reports = [r for key in ("passed", "failed") for r in terminalreporter.stats.get(key, []) if r.when == "call"]
+    bad = [r for r in reports if "test_bad_input.py::" in r.nodeid]
+    fuzz = [(r.nodeid.split("::")[-1], dict(r.user_properties)) for r in reports
+            if "fuzz_examples" in dict(r.user_properties)]
+    if not bad and not fuzz:
+        return
+    terminalreporter.write_sep("-", "bad input and fuzzing")
+    if bad:
+        failed = sum(r.failed for r in bad)
+        terminalreporter.write_line(f"bad-input cases: {len(bad)} run, {len(bad) - failed} passed, {failed} failed")
+    for name, properties in fuzz:
+        statuses = f" (statuses: {properties['fuzz_statuses']})" if "fuzz_statuses" in properties else ""
+        terminalreporter.write_line(f"{name}: {properties['fuzz_examples']} examples{statuses}")

@@ -118,14 +118,19 @@ def test_instances_that_stop_keep_their_answer_while_the_others_run(task, solved
 @pytest.mark.slow
 def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, problems, solved):
     """solve_batch broadcasts its task: a batch of three guesses runs the executable compiled
-    for ``solved``. Guesses with a NaN stop at once with status NAN, as a single solve does."""
+    for ``solved``. A guess with a NaN is refused at the boundary, naming it; below the
+    boundary (the compiled solve itself) it stops at once with status NAN, as a single solve does."""
     compiled = batch._solve_batch._cache_size()
     guess = _with_nan(batch.instance(problems[1], 0))
-    result = batch.solve_batch(task, [guess, guess, guess])
+    good = batch.instance(problems[1], 0)
+    with pytest.raises(ValueError, match=r"joint_positions has non-finite entries .* in instances \[1, 2\]"):
+        batch.solve_batch(task, [good, guess, guess])
+    stacked = batch.stack_trajectories([guess, guess, guess])
+    result = batch._solve_batch(batch.broadcast_task(task, 3), stacked, optimise.DEFAULT_OPTIONS)
     assert batch._solve_batch._cache_size() == compiled
     assert [ip.Status(int(s)) for s in result.solution.status] == [ip.Status.NAN] * 3
     np.testing.assert_array_equal(np.asarray(result.solution.iterations), 1)
-    single = optimise.solve_task(task, guess)
+    single = optimise._solve(task, guess, optimise.DEFAULT_OPTIONS, None, None)
     assert single.status is ip.Status.NAN and int(single.solution.iterations) == 1
 
 

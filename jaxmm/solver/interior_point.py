@@ -277,20 +277,26 @@ REFINEMENT_STEPS = 10  # most refinements of a step towards the exact KKT system
 SOC_STEPS = 4  # second-order corrections per iteration (IPOPT's max_soc)
 
 
-def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multipliers=None):
+def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multipliers=None, scaling=None):
     """Minimise the stage-wise NLP from (Z0 (K, nz), θ0 (ng,)); warm-start the constraint
     multipliers with ``multipliers`` (a ``Multipliers``) and the bound multipliers with
-    ``bound_multipliers`` (both from a previous ``Solution``).
+    ``bound_multipliers`` (both from a previous ``Solution``); ``scaling``: a previous
+    ``Solution.scaling`` to solve in (default: computed at the starting point). Keeping the
+    scaling of a previous solve makes the answers to nearby problems differ only through the
+    problem: the barrier problem at μ > 0 depends on the cost factor.
 
     Jittable and vmappable (options are static): ``jax.jit(solve, static_argnames="options")``.
     Returns a ``Solution``.
     """
     K = Z0.shape[0]
     dtype = Z0.dtype
-    B0 = stagewise.blocks(nlp, Z0, theta0)
-    cost_scale = jnp.minimum(1.0, options.max_gradient / jnp.maximum(
-        jnp.maximum(jnp.max(jnp.abs(B0.cost_z)), jnp.max(jnp.abs(B0.cost_theta))), 1e-300))
-    row_scale = tuple(_row_scale(_group_rows(B0, g), options.max_gradient) for g in GROUPS)
+    if scaling is None:
+        B0 = stagewise.blocks(nlp, Z0, theta0)
+        cost_scale = jnp.minimum(1.0, options.max_gradient / jnp.maximum(
+            jnp.maximum(jnp.max(jnp.abs(B0.cost_z)), jnp.max(jnp.abs(B0.cost_theta))), 1e-300))
+        row_scale = tuple(_row_scale(_group_rows(B0, g), options.max_gradient) for g in GROUPS)
+    else:
+        cost_scale, row_scale = scaling[0], tuple(scaling[1])
     # Inequality rows with no finite bound constrain nothing: their slack follows g.
     active = (
         jnp.broadcast_to(jnp.isfinite(nlp.path_lower) | jnp.isfinite(nlp.path_upper), row_scale[2].shape),
