@@ -80,7 +80,15 @@ def _stack(items, kind, label):
             if jnp.shape(a) != jnp.shape(b):
                 raise ValueError(f"{label} {i} cannot be batched with {label} 0: {label}"
                                  f"{jax.tree_util.keystr(path)} has shape {jnp.shape(b)}, not {jnp.shape(a)}")
-    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *items)
+    return jax.tree.map(_stack_leaves, *items)
+
+
+def _stack_leaves(*leaves):
+    # On the host when the leaves are values: one transfer per leaf instead of one compiled
+    # stack per leaf shape (hundreds for a Task, minutes on simulated multi-device CPUs).
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+        return jnp.stack(leaves)
+    return jnp.asarray(np.stack([np.asarray(leaf) for leaf in leaves]))
 
 
 def broadcast_task(task, size):
@@ -179,7 +187,33 @@ def _solve_batch(tasks, guesses, options):
     return jax.vmap(lambda task, guess: optimise._solve(task, guess, options, None, None))(tasks, guesses)
 
 
-def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS):
+def batch_mesh(devices=None):
+    """A one-axis ``jax.sharding.Mesh`` named "batch" over ``devices`` (default: every device
+    ``jax.devices()`` sees: on several hosts, after ``jax.distributed.initialize()``, those of
+    all the hosts), for the ``mesh`` argument of ``solve_batch`` and ``solve_batch_tasks``."""
+    devices = jax.devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("a batch mesh needs at least one device")
+    return jax.sharding.Mesh(np.asarray(devices), ("batch",))
+
+
+def _run(tasks, guesses, options, mesh):
+    """The compiled batch solve, its instances split over ``mesh``'s devices when given: each
+    device solves B / D instances; the batch's loop runs until the slowest instance of all stops
+    (one small all-reduce per iteration), so the answers are those of the unsharded batch."""
+    if mesh is None:
+        return _solve_batch(tasks, guesses, options)
+    if not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",):
+        raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
+    size, devices = batch_size(guesses), mesh.devices.size
+    if size % devices:
+        raise ValueError(f"a batch of {size} does not split evenly over {devices} devices: give a multiple of "
+                         f"{devices} instances (repeat a guess to pad)")
+    split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    return _solve_batch(jax.device_put(tasks, split), jax.device_put(guesses, split), options)
+
+
+def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None):
     """Solve one ``task`` from B initial guesses at once (multi-start).
 
     guesses: a batched ``Trajectory`` (leaves (B, N + 1, ...), total time (B,)), e.g. from
@@ -187,7 +221,9 @@ def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS):
     Returns a batched ``TaskSolution`` (every leaf (B, ...)): see ``instance`` and ``summarise``.
 
     The task is broadcast to the batch, so this is ``solve_batch_tasks`` of B copies: one
-    compilation per (task structure, B, options) serves both.
+    compilation per (task structure, B, options) serves both. mesh: a ``batch_mesh`` to split
+    the instances over several devices (B a multiple of their number); the answers are the
+    unsharded batch's.
     """
     if not isinstance(task, Task):
         raise TypeError(f"task must be a Task, got {type(task).__name__}")
@@ -195,15 +231,16 @@ def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS):
         raise ValueError("task is batched (use solve_batch_tasks for a batch of tasks)")
     guesses = _batched_guesses(guesses)
     _check_guesses(guesses, jax.eval_shape(initial_guess, task))
-    return _solve_batch(broadcast_task(task, batch_size(guesses)), guesses, options)
+    return _run(broadcast_task(task, batch_size(guesses)), guesses, options, mesh)
 
 
-def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS):
+def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS, mesh=None):
     """Solve B tasks of one structure at once, instance i of ``tasks`` from guess i.
 
     tasks: a batched ``Task`` (``stack_tasks``) or a list of B ``Task``s (stacked here): their
     targets, heights, weights, bounds may differ. guesses: a batched ``Trajectory`` or a list of
-    B, default the published initial guess of each task. Returns a batched ``TaskSolution``.
+    B, default the published initial guess of each task; mesh: as for ``solve_batch`` (a sweep
+    over weights or targets split over devices). Returns a batched ``TaskSolution``.
     """
     if isinstance(tasks, Sequence):
         tasks = stack_tasks(tasks)
@@ -214,7 +251,7 @@ def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS):
         guesses = published_guesses(tasks)
     guesses = _batched_guesses(guesses)
     _check_guesses(guesses, jax.eval_shape(initial_guess, instance(tasks, 0)), size)
-    return _solve_batch(tasks, guesses, options)
+    return _run(tasks, guesses, options, mesh)
 
 
 # ---------------------------------------------------------------------------------- guesses

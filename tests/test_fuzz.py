@@ -150,3 +150,15 @@ def test_random_small_problems_stop_with_a_meaningful_status(record_property):
     record_property("fuzz_examples", len(seen))
     record_property("fuzz_statuses", ", ".join(f"{s} ×{seen.count(s)}" for s in sorted(set(seen))))
     assert len(seen) >= 10
+
+
+def test_the_same_inputs_give_bit_identical_outputs():
+    """Solving the same problem twice (same machine, same compiled program) gives the same bits
+    in every output, history and multipliers included: nothing in the solve depends on timing
+    or thread scheduling."""
+    nlp = _integrator(CAPPED, a=3.0, start=2.0, u_max=5.0, energy_cap=4.0)
+    Z0 = jnp.asarray(np.random.default_rng(5).normal(size=(K, 3)))
+    first, second = (solve(nlp, Z0, jnp.zeros(1), FUZZ_OPTIONS) for _ in range(2))
+    assert ip.Status(int(first.status)) is ip.Status.CONVERGED
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
