@@ -148,7 +148,7 @@ def main():
     for size in args.sizes:
         log(f"B = {size}: compiling...")
         compile_time, solve_time, result = run_batch(task, first(size), options, args.repeats)
-        log(f"B = {size}: solved in {format_time(solve_time)}")
+        log(f"B = {size}: solved in {format_time(solve_time)} (compile {format_time(compile_time)})")
         iterations = np.atleast_1d(np.asarray(result.solution.iterations))
         if size <= sequential:
             serial, mark = sum(single_times[:size]), ""
@@ -159,6 +159,7 @@ def main():
             f"{int(iterations.max())} ({int(iterations.min())}–{int(iterations.max())})",
             f"{solve_time / one:.3g}×", mark + format_time(serial), f"{mark}{serial / solve_time:.3g}×", statuses(result.solution.status),
         ))  # fmt: skip
+        log("  row: " + " | ".join(map(str, rows[-1])))  # in the log too, should a later batch be cut short
         solved_both = min(size, sequential)
         worst, same_status, same_iterations = agreement(result, singles[:solved_both])
         checks.append(f"B = {size}: first {solved_both} instances against the single solves: objective "
