@@ -200,7 +200,8 @@ def batch_mesh(devices=None):
 def _run(tasks, guesses, options, mesh):
     """The compiled batch solve, its instances split over ``mesh``'s devices when given: each
     device solves B / D instances; the batch's loop runs until the slowest instance of all stops
-    (one small all-reduce per iteration), so the answers are those of the unsharded batch."""
+    (one small all-reduce per iteration). Equality with the unsharded batch is what
+    tests/test_sharding.py checks; it has not yet completed on simulated CPU devices."""
     if mesh is None:
         return _solve_batch(tasks, guesses, options)
     if not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",):
@@ -222,8 +223,7 @@ def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None):
 
     The task is broadcast to the batch, so this is ``solve_batch_tasks`` of B copies: one
     compilation per (task structure, B, options) serves both. mesh: a ``batch_mesh`` to split
-    the instances over several devices (B a multiple of their number); the answers are the
-    unsharded batch's.
+    the instances over several devices (B a multiple of their number).
     """
     if not isinstance(task, Task):
         raise TypeError(f"task must be a Task, got {type(task).__name__}")
