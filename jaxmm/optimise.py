@@ -89,14 +89,15 @@ def prepare(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
     published initial guess; a warm start brings its multipliers and ``WARM_START``'s barrier
     settings."""
     if not isinstance(task, Task):
-        raise TypeError(f"task must be a Task (see tasks.scenario, tasks.make_task), got {type(task).__name__}")
+        raise TypeError(f"task must be a Task (see tasks.scenario, tasks.build_task), got {type(task).__name__}")
     if not isinstance(options, ip.Options):
         raise TypeError(f"options must be interior_point.Options, got {type(options).__name__}")
     multipliers = bound_multipliers = None
     if warm_start is not None:
         if not isinstance(warm_start, TaskSolution):
             raise TypeError(f"warm_start must be a TaskSolution, got {type(warm_start).__name__}")
-        check_guess(task, warm_start.trajectory, "warm_start.trajectory")
+        if guess is not None:  # otherwise the check of the guess below is this one
+            check_guess(task, warm_start.trajectory, "warm_start.trajectory")
         guess = warm_start.trajectory if guess is None else guess
         options = dataclasses.replace(options, **WARM_START)
         multipliers, bound_multipliers = warm_start.solution.multipliers, warm_start.solution.bound_multipliers
