@@ -11,7 +11,10 @@ solver's tolerance. The batch costs as many iterations as its slowest instance, 
 one iteration of every instance, stopped ones included; and the solver's inner loops (inertia
 correction, line search) run, under ``vmap``, as long as any instance needs them: an instance
 that stopped on a NaN (its factorisation fails up to δ_w = 1e40) or on rejected steps (the line
-search runs to its limit) makes every later iteration of the batch dearer.
+search runs to its limit) makes every later iteration of the batch dearer. With
+``vectorised=False`` the instances run one after another in a ``lax.map`` instead: on a CPU,
+whose batched kernels are loops anyway, that costs the sum of the instances' own iterations,
+not B times the slowest one's.
 
 A batch is any pytree with a leading batch axis on every leaf: guesses are a ``Trajectory`` of
 leaves (B, N + 1, ...) and total time (B,); tasks a ``Task`` whose array leaves (targets,
@@ -65,7 +68,7 @@ def _stack(items, kind, label):
     if not isinstance(items, Sequence):
         raise TypeError(f"expected a list of {kind.__name__}s to stack, got {type(items).__name__}")
     if not items:
-        raise ValueError(f"cannot stack an empty list of {label}s")
+        raise ValueError(f"cannot stack an empty list (no {label} given)")
     for i, item in enumerate(items):
         if not isinstance(item, kind):
             raise TypeError(f"{label} {i} is a {type(item).__name__}, not a {kind.__name__}")
@@ -181,10 +184,22 @@ def published_guesses(tasks):
     return jax.vmap(initial_guess)(tasks)
 
 
-@functools.partial(jax.jit, static_argnames="options")
-def _solve_batch(tasks, guesses, options):
-    """``optimise._solve`` vmapped over a batched task and its guesses."""
-    return jax.vmap(lambda task, guess: optimise._solve(task, guess, options, None, None))(tasks, guesses)
+def _instances(options, vectorised):
+    """The solve of a batch of (task, guess) instances: vmapped (``vectorised``: the instances
+    advance together, every kernel batched) or ``lax.map``ped (one instance after another, each
+    running only its own iterations, every kernel unbatched)."""
+    def one(task, guess):
+        return optimise._solve(task, guess, options, None, None)
+
+    if vectorised:
+        return jax.vmap(one)
+    return lambda tasks, guesses: jax.lax.map(lambda pair: one(*pair), (tasks, guesses))
+
+
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
+def _solve_batch(tasks, guesses, options, vectorised=True):
+    """``optimise._solve`` over a batched task and its guesses (see ``_instances``)."""
+    return _instances(options, vectorised)(tasks, guesses)
 
 
 def batch_mesh(devices=None):
@@ -197,13 +212,34 @@ def batch_mesh(devices=None):
     return jax.sharding.Mesh(np.asarray(devices), ("batch",))
 
 
-def _run(tasks, guesses, options, mesh):
-    """The compiled batch solve, its instances split over ``mesh``'s devices when given: each
-    device solves B / D instances; the batch's loop runs until the slowest instance of all stops
-    (one small all-reduce per iteration). Equality with the unsharded batch is what
-    tests/test_sharding.py checks; it has not yet completed on simulated CPU devices."""
+@functools.partial(jax.jit, static_argnames=("options", "mesh", "vectorised"))
+def _solve_sharded(tasks, guesses, options, mesh, vectorised):
+    """``_solve_batch`` with the instances split over the devices of ``mesh``: each device
+    solves its own B / D instances (``jax.shard_map``), its loops stopping when its own
+    instances stop. The instances are independent, so there is no collective at all (an
+    SPMD-partitioned vmap would all-reduce "any instance still running" on every trip of every
+    while loop: Newton, line search, inertia correction)."""
+    spec = jax.sharding.PartitionSpec("batch")
+    return jax.shard_map(_instances(options, vectorised), mesh=mesh, in_specs=(spec, spec), out_specs=spec,
+                         check_vma=False)(tasks, guesses)
+
+
+def _vectorised(vectorised, mesh):
+    """The default of ``vectorised``: True, but on a mesh of CPU devices. Several CPU devices of
+    one process share one thread pool, and XLA's batched LAPACK kernels (Cholesky) wait in it
+    for work they queue to it: with every pool thread running a device's program they wait
+    forever (seen on 2 simulated CPU devices: the sharded robot batch hung with 2 instances per
+    device, never with 1). Unbatched kernels queue nothing."""
+    if vectorised is not None:
+        return bool(vectorised)
+    return mesh is None or mesh.devices.flat[0].platform != "cpu"
+
+
+def _run(tasks, guesses, options, mesh, vectorised):
+    """The compiled batch solve, its instances split over ``mesh``'s devices when given."""
+    vectorised = _vectorised(vectorised, mesh)
     if mesh is None:
-        return _solve_batch(tasks, guesses, options)
+        return _solve_batch(tasks, guesses, options, vectorised)
     if not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",):
         raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
     size, devices = batch_size(guesses), mesh.devices.size
@@ -211,10 +247,10 @@ def _run(tasks, guesses, options, mesh):
         raise ValueError(f"a batch of {size} does not split evenly over {devices} devices: give a multiple of "
                          f"{devices} instances (repeat a guess to pad)")
     split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-    return _solve_batch(jax.device_put(tasks, split), jax.device_put(guesses, split), options)
+    return _solve_sharded(jax.device_put(tasks, split), jax.device_put(guesses, split), options, mesh, vectorised)
 
 
-def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None):
+def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None, vectorised=None):
     """Solve one ``task`` from B initial guesses at once (multi-start).
 
     guesses: a batched ``Trajectory`` (leaves (B, N + 1, ...), total time (B,)), e.g. from
@@ -223,7 +259,10 @@ def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None):
 
     The task is broadcast to the batch, so this is ``solve_batch_tasks`` of B copies: one
     compilation per (task structure, B, options) serves both. mesh: a ``batch_mesh`` to split
-    the instances over several devices (B a multiple of their number).
+    the instances over several devices (B a multiple of their number). vectorised: True, the
+    instances (of each device) advance together in one vmapped solve (what accelerators are
+    for); False, one after another in a ``lax.map`` (on a CPU as fast as separate solves, none
+    waiting for the slowest); default True, False on a mesh of CPU devices (see ``_vectorised``).
     """
     if not isinstance(task, Task):
         raise TypeError(f"task must be a Task, got {type(task).__name__}")
@@ -231,16 +270,17 @@ def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None):
         raise ValueError("task is batched (use solve_batch_tasks for a batch of tasks)")
     guesses = _batched_guesses(guesses)
     _check_guesses(guesses, jax.eval_shape(initial_guess, task))
-    return _run(broadcast_task(task, batch_size(guesses)), guesses, options, mesh)
+    return _run(broadcast_task(task, batch_size(guesses)), guesses, options, mesh, vectorised)
 
 
-def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS, mesh=None):
+def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS, mesh=None, vectorised=None):
     """Solve B tasks of one structure at once, instance i of ``tasks`` from guess i.
 
     tasks: a batched ``Task`` (``stack_tasks``) or a list of B ``Task``s (stacked here): their
     targets, heights, weights, bounds may differ. guesses: a batched ``Trajectory`` or a list of
-    B, default the published initial guess of each task; mesh: as for ``solve_batch`` (a sweep
-    over weights or targets split over devices). Returns a batched ``TaskSolution``.
+    B, default the published initial guess of each task; mesh, vectorised: as for
+    ``solve_batch`` (a sweep over weights or targets split over devices). Returns a batched
+    ``TaskSolution``.
     """
     if isinstance(tasks, Sequence):
         tasks = stack_tasks(tasks)
@@ -251,7 +291,7 @@ def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS, mes
         guesses = published_guesses(tasks)
     guesses = _batched_guesses(guesses)
     _check_guesses(guesses, jax.eval_shape(initial_guess, instance(tasks, 0)), size)
-    return _run(tasks, guesses, options, mesh)
+    return _run(tasks, guesses, options, mesh, vectorised)
 
 
 # ---------------------------------------------------------------------------------- guesses

@@ -1,14 +1,16 @@
 """The ``jaxmm`` command line: solve the published scenarios, compare with IPOPT, describe robots.
 
     jaxmm scenarios                                   the four scenarios and their settings
-    jaxmm solve take-off [--knots N] [--target x y z] [--urdf PATH] [--out DIR]
+    jaxmm solve take-off [--knots N] [--target x y z] [--urdf PATH] [--out DIR] [--time-budget S]
     jaxmm compare take-off [--knots N]                ours and the CasADi/IPOPT reference
     jaxmm robot [--urdf PATH]                         a robot summary
 
 ``solve`` writes to its output directory the solution (``solution.npz``, see ``jaxmm.io``), the
 validation report (``validation.txt``), a summary (``summary.json``), the figures and an
 animation. Progress (compiling, then every iteration) is shown on a terminal and stays quiet when
-the output is piped or ``CI`` is set.
+the output is piped or ``CI`` is set. A Ctrl-C while it iterates, or the end of ``--time-budget``
+seconds, stops the solve with its last iterate, which is written like any other (status
+``INTERRUPTED`` or ``TIME_LIMIT`` in the summary; exit code 1); a second Ctrl-C aborts.
 """
 
 import argparse
@@ -116,7 +118,7 @@ def _solve(task, args, progress):
     if progress.live:
         options = dataclasses.replace(options, progress=progress.iteration)
     with progress.compiling(f"the solve of {task.name} (N = {task.n_intervals})") as compiling:
-        run = optimise.compile_solve(task, options=options)
+        run = optimise.compile_solve(task, options=options, time_budget=getattr(args, "time_budget", None))
     start = time.perf_counter()
     result = run()
     result.solution.status.block_until_ready()
@@ -230,6 +232,8 @@ def _scenario_arguments(parser):
     parser.add_argument("--urdf", help="another URDF of iRonCub (same joint, jet and contact frame names)")
     parser.add_argument("--max-iterations", type=int, help="solver iteration limit (default 1500)")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
+    parser.add_argument("--time-budget", type=float, metavar="S",
+                        help="stop iterating after S seconds and keep the last iterate (default: no limit)")
 
 
 def main(argv=None):
@@ -253,6 +257,9 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if getattr(args, "knots", None) is not None and args.knots < 2:
         parser.error(f"--knots must be at least 2, got {args.knots}")
+    budget = getattr(args, "time_budget", None)
+    if budget is not None and not 0 < budget < float("inf"):
+        parser.error(f"--time-budget must be a positive number of seconds, got {budget}")
     try:
         return args.run(args) or 0
     except ERRORS as error:

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmm.solver import interior_point as ip
+from jaxmm.solver import stopping
 from jaxmm.tasks import initial_guess
 from jaxmm.transcription import nlp as transcription
 from jaxmm.transcription import stagewise
@@ -62,6 +63,24 @@ def _solve(task, guess, options, multipliers, bound_multipliers, scaling=None):
     return task_solution(task, nlp, ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers, scaling))
 
 
+# The same solve in slices, for stopping.run: start, advance to an iteration count, finish.
+@functools.partial(jax.jit, static_argnames="options")
+def _start(task, guess, options, multipliers, bound_multipliers, scaling=None):
+    Z0, theta0 = transcription.to_variables(task, guess)
+    return ip.start(transcription.stagewise_nlp(task), Z0, theta0, options, multipliers, bound_multipliers, scaling)
+
+
+@functools.partial(jax.jit, static_argnames="options")
+def _advance(task, state, options, until):
+    return ip.advance(transcription.stagewise_nlp(task), state, options, until)
+
+
+@jax.jit
+def _finish(task, state, stopped):
+    nlp = transcription.stagewise_nlp(task)
+    return task_solution(task, nlp, ip.finish(nlp, state, stopped))
+
+
 def check_guess(task, guess, label="guess"):
     """Raise a ValueError/TypeError naming the problem unless ``guess`` is a ``Trajectory`` with
     the shapes ``task`` needs (those of ``tasks.initial_guess(task)``), real dtypes and, when
@@ -106,7 +125,8 @@ def prepare(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
     return guess, options, multipliers, bound_multipliers
 
 
-def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_scaling=False):
+def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_scaling=False, *,
+               time_budget=None, interruptible=True):
     """Optimise ``task`` (a ``Task``) from ``guess`` (a ``Trajectory``; default: the published
     initial guess). Returns a ``TaskSolution``; check ``.status`` and ``jaxmm.analysis.validate``.
 
@@ -121,22 +141,51 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_
     (what finite differences of re-solves need: the barrier problem at μ > 0 depends on the
     cost factor, which follows the weights).
 
+    time_budget: seconds [s] of iterating after the first iteration (which includes compiling,
+    on a structure's first solve); when they run out the solve stops with status
+    ``TIME_LIMIT`` and its last iterate. interruptible (default): the first Ctrl-C (SIGINT,
+    a notebook's interrupt) stops the solve the same way with status ``INTERRUPTED``; a second
+    one raises KeyboardInterrupt. Both run the solve in slices of about half a second
+    (``jaxmm.solver.stopping``); with interruptible=False and no budget it is one XLA call
+    (``_solve``, the program ``batch`` vmaps), which a Ctrl-C cannot stop.
+
     Raises TypeError/ValueError naming the problem for a guess or warm start of the wrong type,
-    shape or dtype, or with non-finite entries.
+    shape or dtype, or with non-finite entries, and for a time budget that is not positive.
     """
-    arguments = prepare(task, guess, options, warm_start)
+    guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
+    stopping.check_budget(time_budget)
+    scaling = None
     if same_scaling:
         if warm_start is None:
             raise ValueError("same_scaling=True needs a warm_start (whose scaling to keep)")
-        return _solve(task, *arguments, warm_start.solution.scaling)
-    return _solve(task, *arguments)
+        scaling = warm_start.solution.scaling
+    if time_budget is None and not interruptible:
+        return _solve(task, guess, options, multipliers, bound_multipliers, scaling)
+    return stopping.run(
+        _start(task, guess, options, multipliers, bound_multipliers, scaling),
+        lambda state, until: _advance(task, state, options, until), lambda state, stopped: _finish(task, state, stopped),
+        options.max_iterations, time_budget=time_budget, interruptible=interruptible)
 
 
-def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
+def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *, time_budget=None,
+                  interruptible=True):
     """Compile the solve of ``task`` ahead of time, as ``solve_task`` would run it, without
     running it: returns ``run``, a function of no arguments → ``TaskSolution``. For callers that
     report (or time) compiling apart from solving; the compiled program is also the one
-    ``solve_task`` reuses for every task of the same structure."""
+    ``solve_task`` reuses for every task of the same structure. time_budget, interruptible: as
+    for ``solve_task`` (the sliced solve's three programs are compiled here; when run, the first
+    slice then includes no compiling)."""
     guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
-    compiled = _solve.lower(task, guess, options, multipliers, bound_multipliers).compile()
-    return lambda: compiled(task, guess, multipliers, bound_multipliers)
+    stopping.check_budget(time_budget)
+    if time_budget is None and not interruptible:
+        compiled = _solve.lower(task, guess, options, multipliers, bound_multipliers).compile()
+        return lambda: compiled(task, guess, multipliers, bound_multipliers)
+    start = _start.lower(task, guess, options, multipliers, bound_multipliers).compile()
+    state = jax.eval_shape(lambda *arguments: _start(*arguments[:2], options, *arguments[2:]), task, guess, multipliers,
+                           bound_multipliers)
+    advance = _advance.lower(task, state, options, 0).compile()
+    finish = _finish.lower(task, state, 0).compile()
+    return lambda: stopping.run(
+        start(task, guess, multipliers, bound_multipliers), lambda s, until: advance(task, s, until),
+        lambda s, stopped: finish(task, s, stopped), options.max_iterations, time_budget=time_budget,
+        interruptible=interruptible)

@@ -251,9 +251,13 @@ SOLVE_CASES = {
         take_off())), TypeError, "warm_start must be a TaskSolution"),
     "options of the wrong kind": (lambda: optimise.solve_task(take_off(), options={"max_iterations": 3}), TypeError,
                                   "options must be interior_point.Options"),
+    "time budget of zero": (lambda: optimise.solve_task(take_off(), time_budget=0), ValueError,
+                            "time_budget must be a positive number of seconds, got 0"),
+    "time budget that is not a number": (lambda: optimise.compile_solve(take_off(), time_budget="60"), ValueError,
+                                         "time_budget must be a positive number of seconds, got '60'"),
     "batch of guesses with one scalar time": (lambda: batch.solve_batch(take_off(), tasks.initial_guess(take_off())),
                                               ValueError, "must have a leading batch axis"),
-    "batch of an empty list": (lambda: batch.solve_batch(take_off(), []), ValueError, "empty list of guesss"),
+    "batch of an empty list": (lambda: batch.solve_batch(take_off(), []), ValueError, r"cannot stack an empty list \(no guess given\)"),
     "batch with a NaN guess": (lambda: batch.solve_batch(take_off(), [tasks.initial_guess(take_off()), _guess(
         contact_points=lambda p: p.at[0, 0, 0].set(np.inf))]), ValueError, r"guesses.*contact_points has non-finite"),
     "batch of tasks of two knot counts": (lambda: batch.stack_tasks([take_off(), _take_off(knots=10)]), ValueError,
@@ -346,8 +350,10 @@ def test_bad_command_line(argv, message, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv", [["solve", "take-off", "--knots", "1"], ["solve"], ["fly"],
-                                  ["solve", "take-off", "--target", "1", "2"]],
-                         ids=["one knot", "no scenario", "unknown command", "target of two numbers"])
+                                  ["solve", "take-off", "--target", "1", "2"],
+                                  ["solve", "take-off", "--time-budget", "-5"], ["solve", "take-off", "--time-budget", "inf"]],
+                         ids=["one knot", "no scenario", "unknown command", "target of two numbers", "negative time budget",
+                              "infinite time budget"])
 def test_command_line_usage_errors_exit_2(argv, capsys):
     with pytest.raises(SystemExit) as exit:
         main(argv)

@@ -49,6 +49,21 @@ def test_reduced_take_off_converges_and_passes_validate(take_off):
     assert np.all(np.isfinite(history)) and np.all(np.isnan(np.asarray(result.solution.history)[int(result.solution.iterations):]))
 
 
+def test_a_time_budget_stops_the_take_off_on_its_path(take_off):
+    """A budget of 1 ms: the first iteration (not counted), then one slice of one iteration, then
+    the solve stops with status TIME_LIMIT; its iterate is the one the full solve had there (the
+    history rows agree) and every number is finite."""
+    task, result = take_off
+    stopped = solve_task(task, time_budget=1e-3)
+    assert stopped.status is ip.Status.TIME_LIMIT, stopped.status.message
+    count = int(stopped.solution.iterations)
+    assert count == 2
+    np.testing.assert_allclose(np.asarray(stopped.solution.history)[:count],
+                               np.asarray(result.solution.history)[:count], rtol=1e-12)
+    leaves = jax.tree.leaves((stopped.trajectory, stopped.solution.Z, stopped.violation_per_family))
+    assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
+
+
 def _cross_check(task, result, tmp_path):
     """IPOPT from the same guess on the same robot: its objective is not lower than ours by more
     than ``COMPARABLE``, and ours is at least as feasible."""

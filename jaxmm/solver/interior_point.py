@@ -50,6 +50,8 @@ class Status(enum.IntEnum):
     NAN = 3  # a non-finite value appeared; the last finite iterate is returned
     RUNNING = 4
     INFEASIBLE = 5  # infeasible, and no acceptable step reduces the infeasibility: locally infeasible
+    INTERRUPTED = 6  # stopped by the user (Ctrl-C) between iterations; the last iterate is returned
+    TIME_LIMIT = 7  # stopped when its time budget ran out, between iterations; the last iterate is returned
 
     @property
     def message(self):
@@ -60,6 +62,8 @@ class Status(enum.IntEnum):
             Status.NAN: "a non-finite value appeared; returned the last finite iterate",
             Status.RUNNING: "running",
             Status.INFEASIBLE: "locally infeasible: no acceptable step reduces the constraint violation",
+            Status.INTERRUPTED: "interrupted before converging; returned the last iterate",
+            Status.TIME_LIMIT: "stopped when the time budget ran out, before converging; returned the last iterate",
         }[self]
 
 
@@ -252,7 +256,11 @@ def _fraction_to_boundary(values, steps, tau):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class _State:
+class State:
+    """The solver between two iterations (``start``, ``advance``, ``finish``): the primal–dual
+    iterate in the solver's scaling, the barrier parameter, the filter, the counters and the
+    constants fixed at the start (scaling, filter envelope)."""
+
     P: tuple  # (Z, θ, path slacks, transition slacks)
     y: tuple  # scaled multipliers of (path eq, transition eq, path ineq, transition ineq)
     zl: tuple  # bound multipliers per primal leaf
@@ -270,6 +278,9 @@ class _State:
     violation: jax.Array
     stationarity: jax.Array
     history: jax.Array
+    scaling: tuple  # (cost factor, per-row factors of the four groups)
+    theta_max: jax.Array  # the filter's envelope on the infeasibility, from the starting point
+    theta_min: jax.Array  # infeasibility below which Armijo steps on the barrier function may be taken
 
 
 FILTER_SIZE = 128
@@ -277,36 +288,27 @@ REFINEMENT_STEPS = 10  # most refinements of a step towards the exact KKT system
 SOC_STEPS = 4  # second-order corrections per iteration (IPOPT's max_soc)
 
 
-def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multipliers=None, scaling=None):
-    """Minimise the stage-wise NLP from (Z0 (K, nz), θ0 (ng,)); warm-start the constraint
-    multipliers with ``multipliers`` (a ``Multipliers``) and the bound multipliers with
-    ``bound_multipliers`` (both from a previous ``Solution``); ``scaling``: a previous
-    ``Solution.scaling`` to solve in (default: computed at the starting point). Keeping the
-    scaling of a previous solve makes the answers to nearby problems differ only through the
-    problem: the barrier problem at μ > 0 depends on the cost factor.
+def _scaling(nlp, Z0, theta0, options):
+    """(cost factor, per-row factors of the four groups) at the starting point: IPOPT's
+    gradient-based scaling, no row or cost gradient above options.max_gradient."""
+    B0 = stagewise.blocks(nlp, Z0, theta0)
+    cost_scale = jnp.minimum(1.0, options.max_gradient / jnp.maximum(
+        jnp.maximum(jnp.max(jnp.abs(B0.cost_z)), jnp.max(jnp.abs(B0.cost_theta))), 1e-300))
+    return cost_scale, tuple(_row_scale(_group_rows(B0, g), options.max_gradient) for g in GROUPS)
 
-    Jittable and vmappable (options are static): ``jax.jit(solve, static_argnames="options")``.
-    Returns a ``Solution``.
-    """
-    K = Z0.shape[0]
-    dtype = Z0.dtype
-    if scaling is None:
-        B0 = stagewise.blocks(nlp, Z0, theta0)
-        cost_scale = jnp.minimum(1.0, options.max_gradient / jnp.maximum(
-            jnp.maximum(jnp.max(jnp.abs(B0.cost_z)), jnp.max(jnp.abs(B0.cost_theta))), 1e-300))
-        row_scale = tuple(_row_scale(_group_rows(B0, g), options.max_gradient) for g in GROUPS)
-    else:
-        cost_scale, row_scale = scaling[0], tuple(scaling[1])
+
+def _frame(nlp, scaling):
+    """What every iteration derives from the scaling: the inequality rows that constrain
+    something (``active``, per inequality group), the bounds in the solver's units, and
+    ``evaluate(P)`` → (scaled cost, scaled equality residuals (c, g − s), raw residuals)."""
+    cost_scale, row_scale = scaling[0], tuple(scaling[1])
     # Inequality rows with no finite bound constrain nothing: their slack follows g.
     active = (
         jnp.broadcast_to(jnp.isfinite(nlp.path_lower) | jnp.isfinite(nlp.path_upper), row_scale[2].shape),
         jnp.broadcast_to(jnp.isfinite(nlp.transition_lower) | jnp.isfinite(nlp.transition_upper), row_scale[3].shape),
     )
-    delta_c = options.dual_regularisation
-    bounds = _bounds(nlp, row_scale[2:])
 
     def evaluate(P):
-        """Scaled cost, scaled equality residuals (c, g − s) and the raw residuals."""
         Z, theta, sp, st = P
         r = stagewise.residuals(nlp, Z, theta)
         c = (
@@ -317,9 +319,23 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         )
         return cost_scale * r.cost, c, r
 
-    def infeasibility(c):
-        return sum(jnp.sum(jnp.abs(v)) for v in c)
+    return active, _bounds(nlp, row_scale[2:]), evaluate
 
+
+def _infeasibility(c):
+    return sum(jnp.sum(jnp.abs(v)) for v in c)
+
+
+def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multipliers=None, scaling=None):
+    """The solver's ``State`` before its first iteration from (Z0 (K, nz), θ0 (ng,)), pushed
+    inside the bounds; the constraint multipliers warm-started with ``multipliers`` (a
+    ``Multipliers``), the bound multipliers with ``bound_multipliers`` (both from a previous
+    ``Solution``); ``scaling``: a previous ``Solution.scaling`` to solve in (default: computed
+    at the starting point)."""
+    dtype = Z0.dtype
+    scaling = _scaling(nlp, Z0, theta0, options) if scaling is None else (scaling[0], tuple(scaling[1]))
+    cost_scale, row_scale = scaling
+    _, bounds, evaluate = _frame(nlp, scaling)
     r0 = stagewise.residuals(nlp, Z0, theta0)
     P0 = _interior((Z0, theta0, r0.path_inequality * row_scale[2], r0.transition_inequality * row_scale[3]), bounds,
                    options.bound_push)
@@ -332,20 +348,35 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     zl0 = _tmap(lambda o, m: jnp.where(m, o, 0.0), zl0, bounds.has_lower)
     zu0 = _tmap(lambda o, m: jnp.where(m, o, 0.0), zu0, bounds.has_upper)
     _, c0, _ = evaluate(P0)
-    theta_max = 1e4 * jnp.maximum(1.0, infeasibility(c0))
-    theta_min = 1e-4 * jnp.maximum(1.0, infeasibility(c0))
+    envelope = jnp.maximum(1.0, _infeasibility(c0))
     v0, _ = violation(nlp, P0[0], P0[1])
-
-    state = _State(
+    return State(
         P=P0, y=y0, zl=zl0, zu=zu0, mu=jnp.asarray(options.barrier0, dtype),
         regularisation=jnp.asarray(0.0, dtype), forced=jnp.asarray(0.0, dtype),
-        filter_theta=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(theta_max),
+        filter_theta=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(1e4 * envelope),
         filter_phi=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(-jnp.inf),
         filter_count=jnp.asarray(1), rejections=jnp.asarray(0), iterations=jnp.asarray(0),
         barrier_updates=jnp.asarray(0), status=jnp.asarray(int(Status.RUNNING)), violation=v0,
         stationarity=jnp.asarray(jnp.inf, dtype),
         history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
+        scaling=scaling, theta_max=1e4 * envelope, theta_min=1e-4 * envelope,
     )
+
+
+def advance(nlp, state, options=Options(), until=None):
+    """Iterate from ``state`` until the solve stops (converged, infeasible, stalled, NaN) or
+    ``state.iterations`` reaches ``until`` (a traced int is fine: one compilation serves every
+    count; default and cap: options.max_iterations). Returns the new ``State``.
+
+    ``advance(nlp, advance(nlp, s, o, k), o)`` is ``advance(nlp, s, o)``: a solve can be run in
+    slices, with the host deciding between them whether to go on (``optimise``'s time budget
+    and Ctrl-C)."""
+    K = state.P[0].shape[0]
+    dtype = state.P[0].dtype
+    cost_scale, row_scale = state.scaling[0], tuple(state.scaling[1])
+    active, bounds, evaluate = _frame(nlp, state.scaling)
+    delta_c = options.dual_regularisation
+    limit = options.max_iterations if until is None else jnp.minimum(until, options.max_iterations)
     fixed_z = (~bounds.free[0]).astype(dtype)
     fixed_t = (~bounds.free[1]).astype(dtype)
     fz, ft = 1 - fixed_z, 1 - fixed_t
@@ -394,7 +425,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
 
         mu, updates = jax.lax.while_loop(solved, decrease, (state.mu, jnp.asarray(0)))
         reset = updates > 0
-        filter_theta = jnp.where(reset, jnp.full_like(state.filter_theta, jnp.inf).at[0].set(theta_max), state.filter_theta)
+        filter_theta = jnp.where(reset, jnp.full_like(state.filter_theta, jnp.inf).at[0].set(state.theta_max), state.filter_theta)
         filter_phi = jnp.where(reset, jnp.full_like(state.filter_phi, jnp.inf).at[0].set(-jnp.inf), state.filter_phi)
         filter_count = jnp.where(reset, 1, state.filter_count)
         tau = jnp.maximum(0.99, 1.0 - mu)
@@ -516,16 +547,16 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         # Filter line search on (θ, φ) = (‖c‖₁, f + barrier), IPOPT's acceptance rules.
         cost_now = r_now.cost
         phi0 = cost_scale * cost_now + _barrier(P, bounds, mu)
-        theta0_ = infeasibility(c)
+        theta0_ = _infeasibility(c)
         slope = _dot((cost_scale * B.cost_z, cost_scale * B.cost_theta), dP[:2]) + _dot(bgrad, dP)
 
         def trial(alpha, dP):
             Pt = _tmap(lambda p, d: p + alpha * d, P, dP)
             f, ct, _ = evaluate(Pt)
-            return infeasibility(ct), f + _barrier(Pt, bounds, mu), ct
+            return _infeasibility(ct), f + _barrier(Pt, bounds, mu), ct
 
         def acceptable(alpha, th, ph):
-            switching = (slope < 0) & (alpha * (-slope) ** 2.3 > theta0_**1.1) & (theta0_ <= theta_min)
+            switching = (slope < 0) & (alpha * (-slope) ** 2.3 > theta0_**1.1) & (theta0_ <= state.theta_min)
             armijo = ph <= phi0 + 1e-8 * alpha * slope
             decrease = (th <= (1 - 1e-5) * theta0_) | (ph <= phi0 - 1e-8 * theta0_)
             in_filter = jnp.any((th >= filter_theta) & (ph >= filter_phi))
@@ -604,7 +635,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
             jnp.where(rejections < options.max_rejections, int(Status.RUNNING),
                       jnp.where(v_now > options.tolerance, int(Status.INFEASIBLE), int(Status.STALLED))),
         )
-        new = _State(
+        new = State(
             P=P_new, y=y_new, zl=zl_new, zu=zu_new, mu=mu,
             regularisation=jnp.where(delta_w > 0, delta_w, state.regularisation),
             # A rejected step is retried from a more heavily regularised (shorter, steeper) one.
@@ -613,6 +644,7 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
             rejections=rejections, iterations=state.iterations + 1,
             barrier_updates=state.barrier_updates + updates, status=status, violation=v_new,
             stationarity=error0, history=state.history.at[state.iterations].set(record),
+            scaling=state.scaling, theta_max=state.theta_max, theta_min=state.theta_min,
         )
         # Converged: keep the point where the test held, not the step taken from it.
         new = jax.tree.map(lambda a, b: jnp.where(converged, b, a), new, dataclasses.replace(
@@ -626,10 +658,16 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
                                    iterations=state.iterations + 1)
 
     def running(state):
-        return (state.status == int(Status.RUNNING)) & (state.iterations < options.max_iterations)
+        return (state.status == int(Status.RUNNING)) & (state.iterations < limit)
 
-    state = jax.lax.while_loop(running, body, state)
-    status = jnp.where(state.status == int(Status.RUNNING), int(Status.MAX_ITERATIONS), state.status)
+    return jax.lax.while_loop(running, body, state)
+
+
+def finish(nlp, state, stopped=Status.MAX_ITERATIONS):
+    """The ``Solution`` at ``state``; a solve still running is reported with status ``stopped``
+    (an int, traced or not: ``MAX_ITERATIONS``, ``INTERRUPTED``, ``TIME_LIMIT``)."""
+    cost_scale, row_scale = state.scaling[0], tuple(state.scaling[1])
+    status = jnp.where(state.status == int(Status.RUNNING), jnp.asarray(stopped, state.status.dtype), state.status)
     Z, theta = state.P[0], state.P[1]
     v, per_group = violation(nlp, Z, theta)
     return Solution(
@@ -640,3 +678,18 @@ def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         barrier_updates=state.barrier_updates, history=state.history, bound_multipliers=(state.zl, state.zu),
         slacks=(state.P[2], state.P[3]), scaling=(cost_scale, row_scale),
     )
+
+
+def solve(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multipliers=None, scaling=None):
+    """Minimise the stage-wise NLP from (Z0 (K, nz), θ0 (ng,)): ``start``, ``advance`` to the
+    end, ``finish``. ``multipliers``, ``bound_multipliers``: a warm start from a previous
+    ``Solution``; ``scaling``: a previous ``Solution.scaling`` to solve in (default: computed
+    at the starting point). Keeping the scaling of a previous solve makes the answers to nearby
+    problems differ only through the problem: the barrier problem at μ > 0 depends on the cost
+    factor.
+
+    Jittable and vmappable (options are static): ``jax.jit(solve, static_argnames="options")``.
+    Returns a ``Solution``.
+    """
+    state = start(nlp, Z0, theta0, options, multipliers, bound_multipliers, scaling)
+    return finish(nlp, advance(nlp, state, options))
