@@ -34,6 +34,7 @@ import numpy as np
 
 from jaxmm import analysis, optimise
 from jaxmm.solver import interior_point as ip
+from jaxmm.solver import stopping
 from jaxmm.tasks import initial_guess
 from jaxmm.transcription.constraints import variable_bounds
 from jaxmm.transcription.problem import Task
@@ -184,22 +185,40 @@ def published_guesses(tasks):
     return jax.vmap(initial_guess)(tasks)
 
 
-def _instances(options, vectorised):
-    """The solve of a batch of (task, guess) instances: vmapped (``vectorised``: the instances
-    advance together, every kernel batched) or ``lax.map``ped (one instance after another, each
-    running only its own iterations, every kernel unbatched)."""
-    def one(task, guess):
-        return optimise._solve(task, guess, options, None, None)
-
+def _over(one, vectorised):
+    """one(task, x) over batched (tasks, xs): vmapped (``vectorised``: the instances advance
+    together, every kernel batched) or ``lax.map``ped (one instance after another, each running
+    only its own iterations, every kernel unbatched)."""
     if vectorised:
         return jax.vmap(one)
-    return lambda tasks, guesses: jax.lax.map(lambda pair: one(*pair), (tasks, guesses))
+    return lambda tasks, xs: jax.lax.map(lambda pair: one(*pair), (tasks, xs))
+
+
+def _instances(options, vectorised):
+    """The solve of a batch of (task, guess) instances (see ``_over``)."""
+    return _over(lambda task, guess: optimise._solve(task, guess, options, None, None), vectorised)
 
 
 @functools.partial(jax.jit, static_argnames=("options", "vectorised"))
 def _solve_batch(tasks, guesses, options, vectorised=True):
     """``optimise._solve`` over a batched task and its guesses (see ``_instances``)."""
     return _instances(options, vectorised)(tasks, guesses)
+
+
+# The batch solve in slices, for stopping.run (a time budget, Ctrl-C).
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
+def _start_batch(tasks, guesses, options, vectorised):
+    return _over(lambda task, guess: optimise._start(task, guess, options, None, None), vectorised)(tasks, guesses)
+
+
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
+def _advance_batch(tasks, states, options, vectorised, until):
+    return _over(lambda task, state: optimise._advance(task, state, options, until), vectorised)(tasks, states)
+
+
+@functools.partial(jax.jit, static_argnames="vectorised")
+def _finish_batch(tasks, states, vectorised, stopped):
+    return _over(lambda task, state: optimise._finish(task, state, stopped), vectorised)(tasks, states)
 
 
 def batch_mesh(devices=None):
@@ -235,22 +254,33 @@ def _vectorised(vectorised, mesh):
     return mesh is None or mesh.devices.flat[0].platform != "cpu"
 
 
-def _run(tasks, guesses, options, mesh, vectorised):
-    """The compiled batch solve, its instances split over ``mesh``'s devices when given."""
+def _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible):
+    """The compiled batch solve, its instances split over ``mesh``'s devices when given, or run
+    in slices (``stopping``) for a time budget or Ctrl-C."""
     vectorised = _vectorised(vectorised, mesh)
-    if mesh is None:
+    stopping.check_budget(time_budget)
+    if mesh is not None:
+        if not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",):
+            raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
+        if time_budget is not None or interruptible:
+            raise ValueError("a sharded batch is one call: it takes no time_budget and cannot be interrupted")
+        size, devices = batch_size(guesses), mesh.devices.size
+        if size % devices:
+            raise ValueError(f"a batch of {size} does not split evenly over {devices} devices: give a multiple of "
+                             f"{devices} instances (repeat a guess to pad)")
+        split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+        return _solve_sharded(jax.device_put(tasks, split), jax.device_put(guesses, split), options, mesh, vectorised)
+    if time_budget is None and not interruptible:
         return _solve_batch(tasks, guesses, options, vectorised)
-    if not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",):
-        raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
-    size, devices = batch_size(guesses), mesh.devices.size
-    if size % devices:
-        raise ValueError(f"a batch of {size} does not split evenly over {devices} devices: give a multiple of "
-                         f"{devices} instances (repeat a guess to pad)")
-    split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-    return _solve_sharded(jax.device_put(tasks, split), jax.device_put(guesses, split), options, mesh, vectorised)
+    return stopping.run(
+        _start_batch(tasks, guesses, options, vectorised),
+        lambda states, until: _advance_batch(tasks, states, options, vectorised, until),
+        lambda states, stopped: _finish_batch(tasks, states, vectorised, stopped),
+        options.max_iterations, time_budget=time_budget, interruptible=interruptible)
 
 
-def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None, vectorised=None):
+def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None, vectorised=None, *, time_budget=None,
+                interruptible=False):
     """Solve one ``task`` from B initial guesses at once (multi-start).
 
     guesses: a batched ``Trajectory`` (leaves (B, N + 1, ...), total time (B,)), e.g. from
@@ -263,6 +293,9 @@ def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None, vect
     instances (of each device) advance together in one vmapped solve (what accelerators are
     for); False, one after another in a ``lax.map`` (on a CPU as fast as separate solves, none
     waiting for the slowest); default True, False on a mesh of CPU devices (see ``_vectorised``).
+    time_budget [s], interruptible: as for ``optimise.solve_task``, but off by default (the batch
+    is then one XLA call); the instances still running when the batch stops get status
+    ``TIME_LIMIT`` or ``INTERRUPTED``, the others keep theirs. Not with a mesh.
     """
     if not isinstance(task, Task):
         raise TypeError(f"task must be a Task, got {type(task).__name__}")
@@ -270,17 +303,19 @@ def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None, vect
         raise ValueError("task is batched (use solve_batch_tasks for a batch of tasks)")
     guesses = _batched_guesses(guesses)
     _check_guesses(guesses, jax.eval_shape(initial_guess, task))
-    return _run(broadcast_task(task, batch_size(guesses)), guesses, options, mesh, vectorised)
+    return _run(broadcast_task(task, batch_size(guesses)), guesses, options, mesh, vectorised, time_budget,
+                interruptible)
 
 
-def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS, mesh=None, vectorised=None):
+def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS, mesh=None, vectorised=None, *,
+                      time_budget=None, interruptible=False):
     """Solve B tasks of one structure at once, instance i of ``tasks`` from guess i.
 
     tasks: a batched ``Task`` (``stack_tasks``) or a list of B ``Task``s (stacked here): their
     targets, heights, weights, bounds may differ. guesses: a batched ``Trajectory`` or a list of
-    B, default the published initial guess of each task; mesh, vectorised: as for
-    ``solve_batch`` (a sweep over weights or targets split over devices). Returns a batched
-    ``TaskSolution``.
+    B, default the published initial guess of each task; mesh, vectorised, time_budget,
+    interruptible: as for ``solve_batch`` (a sweep over weights or targets split over devices).
+    Returns a batched ``TaskSolution``.
     """
     if isinstance(tasks, Sequence):
         tasks = stack_tasks(tasks)
@@ -291,7 +326,7 @@ def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS, mes
         guesses = published_guesses(tasks)
     guesses = _batched_guesses(guesses)
     _check_guesses(guesses, jax.eval_shape(initial_guess, instance(tasks, 0)), size)
-    return _run(tasks, guesses, options, mesh, vectorised)
+    return _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible)
 
 
 # ---------------------------------------------------------------------------------- guesses

@@ -134,6 +134,19 @@ def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, probl
     assert single.status is ip.Status.NAN and int(single.solution.iterations) == 1
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("vectorised", [True, False], ids=["vmap", "map"])
+def test_a_time_budget_stops_the_batch_on_its_path(problems, solved, vectorised):
+    """A budget of 1 ms: every instance stops after two iterations (the first slice, then one)
+    with status TIME_LIMIT and the first two history rows of the batch that ran to the end."""
+    stopped = batch.solve_batch_tasks(*problems, time_budget=1e-3, vectorised=vectorised)
+    assert [ip.Status(int(s)) for s in stopped.solution.status] == [ip.Status.TIME_LIMIT] * 3
+    np.testing.assert_array_equal(np.asarray(stopped.solution.iterations), 2)
+    np.testing.assert_allclose(np.asarray(stopped.solution.history)[:, :2],
+                               np.asarray(solved.solution.history)[:, :2], rtol=SAME_PATH)
+    assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in jax.tree.leaves(stopped.trajectory))
+
+
 def test_the_default_guesses_of_a_batch_of_tasks_are_the_published_ones(task):
     other = tasks.scenario("take_off", **{**REDUCED_TAKE_OFF, "final_com": (0.0, 0.0, 0.78)})
     published = batch.published_guesses(batch.stack_tasks([task, other]))
@@ -288,6 +301,10 @@ def test_mismatched_batches_are_rejected_before_compiling(task, problems):
         batch.solve_batch(task, [one, batch.instance(small, 0)])
     with pytest.raises(ValueError, match="3 guesses for a batch of 2 tasks"):
         batch.solve_batch_tasks([task, task], guesses)
+    with pytest.raises(ValueError, match="time_budget must be a positive number of seconds, got -1"):
+        batch.solve_batch(task, guesses, time_budget=-1)
+    with pytest.raises(ValueError, match="a sharded batch is one call: it takes no time_budget"):
+        batch.solve_batch(task, guesses, mesh=batch.batch_mesh(), time_budget=10.0)
     with pytest.raises(ValueError, match="task is batched"):
         batch.solve_batch(batch.stack_tasks([task, task]), guesses)
     with pytest.raises(ValueError, match=r"is a scalar: not batched"):

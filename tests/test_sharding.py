@@ -1,11 +1,17 @@
 """Batched solves sharded over devices (``batch.batch_mesh``, ``solve_batch(..., mesh=...)``),
 on two simulated CPU devices (``XLA_FLAGS=--xla_force_host_platform_device_count=2``, which
-must be set before JAX starts, hence a subprocess): the sharded batch gives bit-identical
-answers to the unsharded one (a weight sweep from sampled guesses: multi-start runs the same
-program), its answer is split over both devices, and a batch that does not split evenly is
-refused. On CPU devices each device runs its instances one after another (``vectorised=False``,
-see ``batch._vectorised``: batched LAPACK kernels hang there), so the reference is the
-unsharded batch run the same way."""
+must be set before JAX starts, hence a subprocess): the sharded batch gives the answers of the
+unsharded one (a weight sweep from sampled guesses: multi-start runs the same program) up to
+rounding, bit-identical from run to run, its answer split over both devices; a batch that does
+not split evenly is refused. On CPU devices each device runs its instances one after another
+(``vectorised=False``, see ``batch._vectorised``: batched LAPACK kernels hang there), so the
+reference is the unsharded batch run the same way.
+
+Not bit-identical to it: XLA compiles the per-device program of ``shard_map`` differently from
+the plain jit (measured: the unsharded batch, a one-device mesh and single solves agree bit for
+bit; two devices differ from all of them, and from the unsharded batches of each device's two
+instances, by rounding: the first history rows equal, objectives after 15 iterations within
+1.3e-9, with or without multithreaded Eigen)."""
 
 import json
 import os
@@ -37,13 +43,21 @@ SCRIPT = textwrap.dedent("""
              for f in (0.5, 1.0, 2.0, 4.0)]
     plain = batch.solve_batch_tasks(sweep, guesses, options, vectorised=False)
     sharded = batch.solve_batch_tasks(sweep, guesses, options, mesh=mesh)
+    again = batch.solve_batch_tasks(sweep, guesses, options, mesh=mesh)
+    objectives = [np.asarray(r.solution.objective) for r in (plain, sharded)]
     try:
         batch.solve_batch(task, batch.sample_guesses(task, jax.random.key(1), 3), options, mesh=mesh)
         uneven = "no error"
     except ValueError as error:
         uneven = str(error)
     print(json.dumps(dict(
-        identical=same(plain, sharded),
+        repeatable=same(sharded, again),
+        objective_difference=float(np.max(np.abs(objectives[1] - objectives[0]) / np.abs(objectives[0]))),
+        history_difference=float(np.max(np.abs(np.asarray(sharded.solution.history)[:, :4]
+                                               - np.asarray(plain.solution.history)[:, :4])
+                                        / np.maximum(np.abs(np.asarray(plain.solution.history)[:, :4]), 1e-300))),
+        plain_statuses=[int(s) for s in plain.solution.status],
+        plain_iterations=[int(i) for i in plain.solution.iterations],
         distinct_objectives=len(set(np.asarray(plain.solution.objective).tolist())),
         devices=len(sharded.solution.Z.sharding.device_set),
         statuses=[int(s) for s in sharded.solution.status],
@@ -53,14 +67,17 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
-@pytest.mark.slow  # two compilations of the robot's batched solve from a cold cache: ≈ 6 min, the default run's tail
-def test_a_batch_sharded_over_two_devices_equals_the_unsharded_batch():
+@pytest.mark.slow  # two compilations of the robot's batched solve from a cold cache: ≈ 4 min, the default run's tail
+def test_a_batch_sharded_over_two_devices_gives_the_unsharded_answers():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     done = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, env=env, timeout=1500)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
     assert result["devices"] == 2, result
-    assert result["identical"], result
+    assert result["repeatable"], result
+    assert result["statuses"] == result["plain_statuses"] and result["iterations"] == result["plain_iterations"], result
+    assert result["history_difference"] <= 1e-12, result  # the first four iterations: the same path
+    assert result["objective_difference"] <= 1e-7, result  # after 15 iterations: rounding only
     assert result["distinct_objectives"] == 4, result  # four different problems were solved
     assert all(0 < i <= 15 for i in result["iterations"]), result
     assert "does not split evenly over 2 devices" in result["uneven"], result
