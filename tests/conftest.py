@@ -24,11 +24,16 @@ def _pin_xdist_worker():
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > len(cores):
         return  # some workers would share a core whatever we do
-    index = int(worker.removeprefix("gw"))
+    index = int(worker.removeprefix("gw")) % workers  # a worker replacing a crashed one is gw2, gw3, …
     os.sched_setaffinity(0, set(cores[index::workers]))
 
 
 _pin_xdist_worker()
+# A size limit turns on the file lock of JAX's persistent compilation cache; without it a process
+# can read an executable another process is still writing (seen: an xdist worker aborted in
+# deserialising a half-written entry). Set in the environment so notebook kernels and
+# subprocesses share it; .ci/run sets it for its main job too (entries need the same bookkeeping).
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(16 << 30))
 
 import jax  # noqa: E402  (after the pinning: JAX's threads inherit the affinity)
 import numpy as np  # noqa: E402
