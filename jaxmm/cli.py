@@ -8,8 +8,8 @@
 ``solve`` writes to its output directory the solution (``solution.npz``, see ``jaxmm.io``), the
 validation report (``validation.txt``), a summary (``summary.json``), the figures and an
 animation. Progress (compiling, then every iteration) is shown on a terminal and stays quiet when
-the output is piped or ``CI`` is set. A Ctrl-C while it iterates, or the end of ``--time-budget``
-seconds, stops the solve with its last iterate, which is written like any other (status
+the output is piped or ``CI`` is set. With ``--time-budget S``, the end of S seconds of iterating
+or a Ctrl-C stops the solve with its last iterate, which is written like any other (status
 ``INTERRUPTED`` or ``TIME_LIMIT`` in the summary; exit code 1); a second Ctrl-C aborts.
 """
 
@@ -118,7 +118,8 @@ def _solve(task, args, progress):
     if progress.live:
         options = dataclasses.replace(options, progress=progress.iteration)
     with progress.compiling(f"the solve of {task.name} (N = {task.n_intervals})") as compiling:
-        run = optimise.compile_solve(task, options=options, time_budget=getattr(args, "time_budget", None))
+        budget = getattr(args, "time_budget", None)
+        run = optimise.compile_solve(task, options=options, time_budget=budget, interruptible=budget is not None)
     start = time.perf_counter()
     result = run()
     result.solution.status.block_until_ready()

@@ -126,7 +126,7 @@ def prepare(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
 
 
 def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_scaling=False, *,
-               time_budget=None, interruptible=True):
+               time_budget=None, interruptible=False):
     """Optimise ``task`` (a ``Task``) from ``guess`` (a ``Trajectory``; default: the published
     initial guess). Returns a ``TaskSolution``; check ``.status`` and ``jaxmm.analysis.validate``.
 
@@ -143,11 +143,11 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_
 
     time_budget: seconds [s] of iterating after the first iteration (which includes compiling,
     on a structure's first solve); when they run out the solve stops with status
-    ``TIME_LIMIT`` and its last iterate. interruptible (default): the first Ctrl-C (SIGINT,
-    a notebook's interrupt) stops the solve the same way with status ``INTERRUPTED``; a second
-    one raises KeyboardInterrupt. Both run the solve in slices of about half a second
-    (``jaxmm.solver.stopping``); with interruptible=False and no budget it is one XLA call
-    (``_solve``, the program ``batch`` vmaps), which a Ctrl-C cannot stop.
+    ``TIME_LIMIT`` and its last iterate. interruptible: the first Ctrl-C (SIGINT, a notebook's
+    interrupt) stops the solve the same way with status ``INTERRUPTED``; a second one raises
+    KeyboardInterrupt. Both run the solve in slices of about half a second
+    (``jaxmm.solver.stopping``); without them (the default) it is one XLA call (``_solve``, the
+    program ``batch`` vmaps), which a Ctrl-C cannot stop.
 
     Raises TypeError/ValueError naming the problem for a guess or warm start of the wrong type,
     shape or dtype, or with non-finite entries, and for a time budget that is not positive.
@@ -168,7 +168,7 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_
 
 
 def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *, time_budget=None,
-                  interruptible=True):
+                  interruptible=False):
     """Compile the solve of ``task`` ahead of time, as ``solve_task`` would run it, without
     running it: returns ``run``, a function of no arguments → ``TaskSolution``. For callers that
     report (or time) compiling apart from solving; the compiled program is also the one
