@@ -257,11 +257,11 @@ def _vectorised(vectorised, mesh):
 def _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible):
     """The compiled batch solve, its instances split over ``mesh``'s devices when given, or run
     in slices (``stopping``) for a time budget or Ctrl-C."""
-    vectorised = _vectorised(vectorised, mesh)
     stopping.check_budget(time_budget)
+    if mesh is not None and (not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",)):
+        raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
+    vectorised = _vectorised(vectorised, mesh)
     if mesh is not None:
-        if not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",):
-            raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
         if time_budget is not None or interruptible:
             raise ValueError("a sharded batch is one call: it takes no time_budget and cannot be interrupted")
         size, devices = batch_size(guesses), mesh.devices.size

@@ -257,6 +257,8 @@ SOLVE_CASES = {
                                          "time_budget must be a positive number of seconds, got '60'"),
     "batch of guesses with one scalar time": (lambda: batch.solve_batch(take_off(), tasks.initial_guess(take_off())),
                                               ValueError, "must have a leading batch axis"),
+    "batch mesh that is not a Mesh": (lambda: batch.solve_batch(take_off(), [tasks.initial_guess(take_off())] * 2,
+                                                            mesh="cpu"), TypeError, "mesh must be a one-axis Mesh"),
     "batch of an empty list": (lambda: batch.solve_batch(take_off(), []), ValueError, r"cannot stack an empty list \(no guess given\)"),
     "batch with a NaN guess": (lambda: batch.solve_batch(take_off(), [tasks.initial_guess(take_off()), _guess(
         contact_points=lambda p: p.at[0, 0, 0].set(np.inf))]), ValueError, r"guesses.*contact_points has non-finite"),

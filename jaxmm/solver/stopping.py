@@ -6,9 +6,8 @@ for its end. So the solve runs in slices (``interior_point.advance`` up to a giv
 count, one compilation for every count) and the host decides between slices whether to go on.
 The first slice is one iteration (it may include compiling); the next are sized to take about
 ``SLICE_SECONDS`` each, from the time the last one took, and never to run past the time left:
-a budget is overshot by about one iteration. An interrupt is
-caught as a flag (the first Ctrl-C) and acted on when the running slice ends; a second Ctrl-C
-raises ``KeyboardInterrupt`` at once.
+a budget is overshot by about one iteration. An interrupt is caught as a flag (the first Ctrl-C)
+and acted on when the running slice ends; a second Ctrl-C raises ``KeyboardInterrupt`` at once.
 
 Works the same for one solve and for a vmapped batch of them (status and iterations (B,)):
 the batch goes on while any instance runs, and the instances still running when it stops get
@@ -65,8 +64,8 @@ def run(state, advance, finish, max_iterations, *, time_budget=None, interruptib
     the result, with ``stopped`` the status of instances still running (a ``Status`` int).
     time_budget: seconds of iterating after the first slice of one iteration (None: no limit;
     the first slice may include compiling: it does not count); interruptible: the first Ctrl-C
-    stops the solve after the running slice. Returns finish's result: ``MAX_ITERATIONS`` if the iteration limit ended it,
-    else ``TIME_LIMIT`` or ``INTERRUPTED`` for whatever still ran.
+    stops the solve after the running slice. Returns finish's result: ``MAX_ITERATIONS`` if the
+    iteration limit ended it, else ``TIME_LIMIT`` or ``INTERRUPTED`` for whatever still ran.
     """
     check_budget(time_budget)
     deadline = math.inf
