@@ -1,5 +1,7 @@
 """The transcription: block Jacobians against dense autodiff, costs, bounds and scenarios."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +12,7 @@ from jaxmm.tasks import SCENARIOS, build_task, initial_guess, scenario
 from jaxmm.transcription import constraints, costs
 from jaxmm.transcription import nlp as transcription
 from jaxmm.transcription import stagewise
+from jaxmm.transcription import variables as jaxmm_variables
 
 
 def _random_point(task, seed):
@@ -183,3 +186,48 @@ def test_constraint_curvature_matches_jax_hessian():
     reference = jax.jit(stagewise.constraint_curvature)(plain, Z, theta, *y)
     for ours, expected in zip(fast, reference):
         assert np.abs(np.asarray(ours) - np.asarray(expected)).max() <= 1e-10 * max(1.0, np.abs(expected).max())
+
+
+def test_resample_interpolates_knots_in_time_and_keeps_unit_quaternions():
+    task = scenario("take_off", knots=6, keep_horizon=True)
+    guess = initial_guess(task)
+    rng = np.random.default_rng(3)
+    # every field affine in time, so linear interpolation must reproduce it exactly
+    slope, offset = (jax.tree.map(lambda v: rng.normal(size=v.shape[1:]), guess.knots) for _ in range(2))
+    time = np.linspace(0.0, 1.0, 7)
+    knots = jax.tree.map(lambda a, b: a + np.multiply.outer(time, b), offset, slope)
+    # a rotation about z by up to 1.2 rad, with the sign of every other knot flipped (same rotations)
+    angles = np.linspace(0.0, 1.2, 7)
+    quaternions = np.stack([np.zeros(7), np.zeros(7), np.sin(angles / 2), np.cos(angles / 2)], axis=1)
+    flipped = quaternions * np.where(np.arange(7) % 2, -1.0, 1.0)[:, None]
+    trajectory = jaxmm_variables.Trajectory(dataclasses.replace(knots, base_quaternion=jnp.asarray(flipped)),
+                                           jnp.asarray(2.5))
+    fine = jaxmm_variables.resample(trajectory, 25)
+    fine_time = np.linspace(0.0, 1.0, 25)
+    expected = jax.tree.map(lambda a, b: a + np.multiply.outer(fine_time, b), offset, slope)
+    for name in jaxmm_variables.FIELDS:
+        if name != "base_quaternion":
+            np.testing.assert_allclose(getattr(fine.knots, name), getattr(expected, name), atol=1e-12, err_msg=name)
+    q = np.asarray(fine.knots.base_quaternion)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-14)
+    assert np.all(q[:, 3] > 0.8)  # the flipped knots were brought back to one side before interpolating
+    # normalised linear interpolation of a rotation about z stays about z, angles in order
+    np.testing.assert_allclose(q[:, :2], 0.0, atol=1e-15)
+    assert np.all(np.diff(np.arctan2(q[:, 2], q[:, 3])) > 0)
+    np.testing.assert_allclose(2 * np.arctan2(q[[0, -1], 2], q[[0, -1], 3]), [0.0, 1.2], atol=1e-14)
+    assert float(fine.total_time) == 2.5
+    same = jaxmm_variables.resample(trajectory, 7)
+    np.testing.assert_allclose(same.knots.com, trajectory.knots.com, atol=1e-15)
+    np.testing.assert_allclose(np.abs(np.sum(same.knots.base_quaternion * flipped, axis=1)), 1.0, atol=1e-14)
+    assert jaxmm_variables.resample(fine, 4).n_knots == 4
+
+
+@pytest.mark.parametrize("call, error, message", [
+    (lambda t: jaxmm_variables.resample(t, 1), ValueError, "n_knots must be an integer ≥ 2, got 1"),
+    (lambda t: jaxmm_variables.resample(t, 10.5), ValueError, "n_knots must be an integer ≥ 2, got 10.5"),
+    (lambda t: jaxmm_variables.resample(t, True), ValueError, "n_knots must be an integer ≥ 2, got True"),
+    (lambda t: jaxmm_variables.resample(t.knots, 10), TypeError, "trajectory must be a Trajectory, got Knot"),
+], ids=["one knot", "fractional", "bool", "not a trajectory"])
+def test_resample_bad_input(call, error, message):
+    with pytest.raises(error, match=message):
+        call(initial_guess(scenario("take_off", knots=4, keep_horizon=True)))

@@ -4,6 +4,7 @@ The order of the fields is the flat layout of a knot (docs/formulation.md, "Vari
 """
 
 import dataclasses
+import numbers
 
 import jax
 import jax.numpy as jnp
@@ -73,6 +74,32 @@ class Trajectory:
     def time(self):
         """(N + 1,) time of each knot [s]."""
         return jnp.linspace(0.0, 1.0, self.n_knots) * self.total_time
+
+
+def resample(trajectory, n_knots):
+    """The trajectory on ``n_knots`` evenly spaced knots over the same total time: every knot
+    field interpolated linearly in time, the base quaternion normalised after interpolation
+    (its sign made continuous first). For refining a coarse solution into the guess of the same
+    task at a larger N (or coarsening one). Returns a ``Trajectory``; ``n_knots`` ≥ 2."""
+    if not isinstance(trajectory, Trajectory):
+        raise TypeError(f"trajectory must be a Trajectory, got {type(trajectory).__name__}")
+    if isinstance(n_knots, bool) or not isinstance(n_knots, numbers.Integral) or n_knots < 2:
+        raise ValueError(f"n_knots must be an integer ≥ 2, got {n_knots!r}")
+    source = jnp.linspace(0.0, 1.0, trajectory.n_knots)
+    target = jnp.linspace(0.0, 1.0, int(n_knots))
+    quaternions = trajectory.knots.base_quaternion
+    # q and −q are one rotation: flip each knot's sign to the side of its predecessor's
+    signs = jnp.cumprod(jnp.where(jnp.sum(quaternions[1:] * quaternions[:-1], axis=-1) < 0, -1.0, 1.0))
+    quaternions = quaternions.at[1:].multiply(signs[:, None])
+
+    def along(values):
+        flat = values.reshape(values.shape[0], -1)
+        out = jax.vmap(lambda column: jnp.interp(target, source, column), in_axes=1, out_axes=1)(flat)
+        return out.reshape((target.shape[0],) + values.shape[1:])
+
+    knots = jax.tree.map(along, dataclasses.replace(trajectory.knots, base_quaternion=quaternions))
+    unit = knots.base_quaternion / jnp.linalg.norm(knots.base_quaternion, axis=-1, keepdims=True)
+    return Trajectory(knots=dataclasses.replace(knots, base_quaternion=unit), total_time=trajectory.total_time)
 
 
 @dataclasses.dataclass(frozen=True)
