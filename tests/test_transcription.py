@@ -168,12 +168,12 @@ def test_unknown_scenario_and_missing_jet_model():
         jaxmm.load_robot(jaxmm.assemble_urdf(jaxmm.robots.ironcub_description()), jet_frames=["nozzle"])
 
 
-def test_constraint_curvature_matches_jax_hessian():
-    """The transcription's chain-rule path Hessian (kinematics linearised + their own curvature)
-    equals ``jax.hessian`` of y·c at a perturbed guess with random multipliers."""
-    import dataclasses
-
-    task = scenario("take_off", knots=3)
+@pytest.mark.parametrize("integration", ["backward_euler", "trapezoidal"])
+def test_constraint_curvature_matches_jax_hessian(integration):
+    """The transcription's own Hessians (path: kinematics linearised + their own curvature, over
+    the columns the rows are nonlinear in; transition: over its nonlinear columns + T_total's)
+    equal ``jax.hessian`` of y·c at a perturbed guess with random multipliers."""
+    task = scenario("take_off", knots=3, integration=integration)
     nlp = transcription.stagewise_nlp(task)
     Z, theta = transcription.to_variables(task, initial_guess(task))
     key = jax.random.PRNGKey(0)
@@ -181,7 +181,8 @@ def test_constraint_curvature_matches_jax_hessian():
     r = stagewise.residuals(nlp, Z, theta)
     groups = ("path_equality", "transition_equality", "path_inequality", "transition_inequality")
     y = [jax.random.normal(k, getattr(r, g).shape) for k, g in zip(jax.random.split(key, 4), groups)]
-    plain = dataclasses.replace(nlp, functions=dataclasses.replace(nlp.functions, path_hessian=None))
+    plain = dataclasses.replace(
+        nlp, functions=dataclasses.replace(nlp.functions, path_hessian=None, transition_hessian=None))
     fast = jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y)
     reference = jax.jit(stagewise.constraint_curvature)(plain, Z, theta, *y)
     for ours, expected in zip(fast, reference):

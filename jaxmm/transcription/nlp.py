@@ -27,6 +27,28 @@ def _knot_cost(task, z, theta, role):
     return costs.knot_cost(task, task.weights, _knot(task, z), theta[0], role)
 
 
+def _knot_cost_hessian(task, z, theta, role):
+    """Hessian blocks (∂²/∂z̃², ∂²/∂z̃∂θ, ∂²/∂θ²) of one knot's cost, exact. The cost (eq. 32) is a
+    weighted sum of squares of single entries of z̃ (a diagonal Hessian, read off one
+    Hessian-vector product with ones) but for the base quaternion's SO(3) log at knot 0 (a 4 × 4
+    ``jax.hessian``) and T_total, which multiplies the running terms (its row by
+    forward-over-reverse): 6 passes instead of nz + ng."""
+    nz = z.shape[0]
+    quaternion = _columns(task.layout, "base_quaternion")
+    squares = np.setdiff1d(np.arange(nz), quaternion)
+    w0 = jnp.concatenate([z, theta])
+
+    def cost(w):
+        return _knot_cost(task, w[:nz], w[nz:], role)
+
+    ones = jnp.zeros_like(w0).at[squares].set(1.0)
+    diagonal = jax.jvp(jax.grad(cost), (w0,), (ones,))[1]
+    hessian = _hessian_over(cost, w0, quaternion).at[squares, squares].set(diagonal[squares])
+    theta_columns = jax.jacfwd(lambda th: jax.grad(cost)(w0.at[nz:].set(th)))(theta)  # (nz + ng, ng)
+    hessian = hessian.at[:, nz:].set(theta_columns).at[nz:, :].set(theta_columns.T)
+    return hessian[:nz, :nz], hessian[:nz, nz:], hessian[nz:, nz:]
+
+
 def _global_cost(task, theta):
     return task.weights.horizon * theta[0]
 
@@ -72,13 +94,64 @@ def _path_hessian(task, z, theta, y_equality, y_inequality):
         return weighted(w, jax.tree.map(lambda k, J: k + J @ dq, kin0, jacobian))
 
     w0 = jnp.concatenate([z, theta])
-    hessian = jax.hessian(linearised)(w0)
+    hessian = _hessian_over(linearised, w0, _path_curvature_columns(task.layout))
     weights = jax.grad(weighted, argnums=1)(w0, kin0)
     curvature = centroidal_kinematics_curvature(
         robot.model, q0, robot.contact_frames + robot.jet_frames, weights
     )
     selection = jax.jacfwd(configuration)(z)  # q is linear in z̃
     return hessian.at[:nz, :nz].add(selection.T @ curvature @ selection)
+
+
+def _columns(layout, field, entries=slice(None), offset=0):
+    block = layout.slices()[field]
+    return offset + np.arange(block.start, block.stop)[entries]
+
+
+def _path_curvature_columns(layout):
+    """Flat columns of z̃ in which the path rows, kinematics linearised, are not linear: CoM, q, ν,
+    forces and corners (the momentum rate, eq. 8; CMM ν, eq. 15), the jets' T, Ṫ, u (eq. 23)."""
+    fields = ("com", "base_position", "base_quaternion", "joint_positions", "base_linear_velocity",
+              "base_angular_velocity", "joint_velocities", "contact_forces", "contact_points", "thrust",
+              "thrust_rate", "throttle")
+    return np.concatenate([_columns(layout, f) for f in fields])
+
+
+def _transition_curvature_columns(layout):
+    """Flat columns of (z̃_k, z̃_{k+1}) in which the transition rows are not linear, T_total apart:
+    ρ_k and ω_{k+1} (quaternion integration, eq. 25), f_z,k and the corners' x, y at k and k+1
+    (planar complementarity, eq. 21). Every other row is linear but for Δt × a rate."""
+    nz = layout.size
+    planar = np.sort(np.concatenate([_columns(layout, "contact_points", slice(i, None, 3)) for i in (0, 1)]))
+    return np.concatenate([
+        _columns(layout, "base_quaternion"), _columns(layout, "contact_forces", slice(2, None, 3)), planar,
+        _columns(layout, "base_angular_velocity", offset=nz), planar + nz,
+    ])
+
+
+def _hessian_over(fn, w0, columns):
+    """Hessian of fn at w0 when fn is linear in every entry of w0 but ``columns``: ``jax.hessian``
+    over those alone (len(columns) tangents instead of len(w0)), scattered into (n, n)."""
+    inner = jax.hessian(lambda v: fn(w0.at[columns].set(v)))(w0[columns])
+    return jnp.zeros((w0.shape[0],) * 2, w0.dtype).at[np.ix_(columns, columns)].set(inner)
+
+
+def _transition_hessian(task, z, z_next, theta, y_equality, y_inequality):
+    """Hessian of y_t·t + y_h·h w.r.t. (z̃_k, z̃_{k+1}, θ), (2 nz + ng)², exact: ``jax.hessian``
+    over the few variables the rows are nonlinear in (``_transition_curvature_columns``), and the
+    rows and columns of θ = T_total (which multiplies every rate) by forward-over-reverse with ng
+    tangents, instead of 2 nz + ng tangents through every row."""
+    nz = z.shape[0]
+
+    def weighted(w):
+        now, nxt, th = w[:nz], w[nz : 2 * nz], w[2 * nz :]
+        return jnp.dot(y_equality, _transition_equality(task, now, nxt, th)) + jnp.dot(
+            y_inequality, _transition_inequality(task, now, nxt, th))
+
+    w0 = jnp.concatenate([z, z_next, theta])
+    hessian = _hessian_over(weighted, w0, _transition_curvature_columns(task.layout))
+    theta_columns = jax.jacfwd(lambda th: jax.grad(weighted)(w0.at[2 * nz :].set(th)))(theta)  # (2 nz + ng, ng)
+    return hessian.at[:, 2 * nz :].set(theta_columns).at[2 * nz :, :].set(theta_columns.T)
 
 
 def _transition_inequality(task, z, z_next, theta):
@@ -88,12 +161,14 @@ def _transition_inequality(task, z, z_next, theta):
 
 FUNCTIONS = StagewiseFunctions(
     knot_cost=_knot_cost,
+    knot_cost_hessian=_knot_cost_hessian,
     global_cost=_global_cost,
     path_equality=_path_equality,
     transition_equality=_transition_equality,
     path_inequality=_path_inequality,
     transition_inequality=_transition_inequality,
     path_hessian=_path_hessian,
+    transition_hessian=_transition_hessian,
 )
 
 

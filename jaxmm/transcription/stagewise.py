@@ -28,7 +28,11 @@ class StagewiseFunctions:
     transition_equality(args, z, z_next, θ) → (mt,); path_inequality(args, z, θ) → (mg,);
     transition_inequality(args, z, z_next, θ) → (mh,).
     path_hessian (optional): (args, z, θ, y_e (me,), y_g (mg,)) → (nz + ng, nz + ng), the Hessian
-    of y_e·e + y_g·g w.r.t. (z, θ), for NLPs that know a faster way than ``jax.hessian``.
+    of y_e·e + y_g·g w.r.t. (z, θ), for NLPs that know a faster way than ``jax.hessian``;
+    knot_cost_hessian (optional): (args, z, θ, d) → (∂²φ/∂z² (nz, nz), ∂²φ/∂z∂θ (nz, ng),
+    ∂²φ/∂θ² (ng, ng)), likewise;
+    transition_hessian (optional): (args, z, z_next, θ, y_t (mt,), y_h (mh,)) → (2 nz + ng,
+    2 nz + ng), the Hessian of y_t·t + y_h·h w.r.t. (z, z_next, θ), likewise.
     """
 
     knot_cost: Callable
@@ -38,6 +42,8 @@ class StagewiseFunctions:
     path_inequality: Callable
     transition_inequality: Callable
     path_hessian: Callable | None = None
+    knot_cost_hessian: Callable | None = None
+    transition_hessian: Callable | None = None
 
 
 @jax.tree_util.register_dataclass
@@ -145,8 +151,12 @@ def blocks(nlp, Z, theta):
 
     knot_grad = jax.grad(f.knot_cost, argnums=(1, 2))
     cost_z, cost_theta = jax.vmap(knot_grad, in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
-    hessian = jax.vmap(jax.jacfwd(knot_grad, argnums=(1, 2)), in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
-    (cost_zz, cost_ztheta), (_, cost_thetatheta) = hessian
+    if f.knot_cost_hessian is None:
+        hessian = jax.vmap(jax.jacfwd(knot_grad, argnums=(1, 2)), in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
+        (cost_zz, cost_ztheta), (_, cost_thetatheta) = hessian
+    else:
+        cost_zz, cost_ztheta, cost_thetatheta = jax.vmap(f.knot_cost_hessian, in_axes=(None, 0, None, 0))(
+            a, Z, theta, nlp.knot_data)
     global_grad = jax.grad(f.global_cost, argnums=1)
     pe_z, pe_theta = path(f.path_equality)
     te_z, te_znext, te_theta = transition(f.transition_equality)
@@ -188,11 +198,11 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
 
         return jax.hessian(weighted)(jnp.concatenate([z, theta]))
 
-    def transition_hessian(z, z_next, y_t, y_h):
+    def transition_hessian(args, z, z_next, theta, y_t, y_h):
         def weighted(w):
             now, nxt, th = w[:nz], w[nz : 2 * nz], w[2 * nz :]
-            return jnp.sum(f.transition_equality(a, now, nxt, th) * y_t) + jnp.sum(
-                f.transition_inequality(a, now, nxt, th) * y_h
+            return jnp.sum(f.transition_equality(args, now, nxt, th) * y_t) + jnp.sum(
+                f.transition_inequality(args, now, nxt, th) * y_h
             )
 
         return jax.hessian(weighted)(jnp.concatenate([z, z_next, theta]))
@@ -200,7 +210,9 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
     hessian = path_hessian if f.path_hessian is None else f.path_hessian
     H = jax.vmap(hessian, in_axes=(None, 0, None, 0, 0))(a, Z, theta, path_equality, path_inequality)
     D, B, C = H[:, :nz, :nz], H[:, :nz, nz:], jnp.sum(H[:, nz:, nz:], axis=0)
-    H = jax.vmap(transition_hessian)(Z[:-1], Z[1:], transition_equality, transition_inequality)
+    hessian = transition_hessian if f.transition_hessian is None else f.transition_hessian
+    H = jax.vmap(hessian, in_axes=(None, 0, 0, None, 0, 0))(a, Z[:-1], Z[1:], theta, transition_equality,
+                                                          transition_inequality)
     D = D.at[:-1].add(H[:, :nz, :nz]).at[1:].add(H[:, nz : 2 * nz, nz : 2 * nz])
     L = H[:, nz : 2 * nz, :nz]
     B = B.at[:-1].add(H[:, :nz, 2 * nz :]).at[1:].add(H[:, nz : 2 * nz, 2 * nz :])
