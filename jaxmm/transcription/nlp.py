@@ -44,8 +44,7 @@ def _knot_cost_hessian(task, z, theta, role):
     ones = jnp.zeros_like(w0).at[squares].set(1.0)
     diagonal = jax.jvp(jax.grad(cost), (w0,), (ones,))[1]
     hessian = _hessian_over(cost, w0, quaternion).at[squares, squares].set(diagonal[squares])
-    theta_columns = jax.jacfwd(lambda th: jax.grad(cost)(w0.at[nz:].set(th)))(theta)  # (nz + ng, ng)
-    hessian = hessian.at[:, nz:].set(theta_columns).at[nz:, :].set(theta_columns.T)
+    hessian = _with_global_rows(cost, w0, nz, hessian)
     return hessian[:nz, :nz], hessian[:nz, nz:], hessian[nz:, nz:]
 
 
@@ -110,7 +109,8 @@ def _columns(layout, field, entries=slice(None), offset=0):
 
 def _path_curvature_columns(layout):
     """Flat columns of z̃ in which the path rows, kinematics linearised, are not linear: CoM, q, ν,
-    forces and corners (the momentum rate, eq. 8; CMM ν, eq. 15), the jets' T, Ṫ, u (eq. 23)."""
+    forces and corners (the momentum rate, eq. 8; CMM ν, eq. 15), the jets' T, Ṫ, u (eq. 23).
+    The path rows do not depend on T_total."""
     fields = ("com", "base_position", "base_quaternion", "joint_positions", "base_linear_velocity",
               "base_angular_velocity", "joint_velocities", "contact_forces", "contact_points", "thrust",
               "thrust_rate", "throttle")
@@ -136,6 +136,13 @@ def _hessian_over(fn, w0, columns):
     return jnp.zeros((w0.shape[0],) * 2, w0.dtype).at[np.ix_(columns, columns)].set(inner)
 
 
+def _with_global_rows(fn, w0, start, hessian):
+    """``hessian`` of fn at w0 with the rows and columns of the globals w0[start:] (θ) set exactly,
+    by forward-over-reverse with ng tangents."""
+    columns = jax.jacfwd(lambda th: jax.grad(fn)(w0.at[start:].set(th)))(w0[start:])  # (n, ng)
+    return hessian.at[:, start:].set(columns).at[start:, :].set(columns.T)
+
+
 def _transition_hessian(task, z, z_next, theta, y_equality, y_inequality):
     """Hessian of y_t·t + y_h·h w.r.t. (z̃_k, z̃_{k+1}, θ), (2 nz + ng)², exact: ``jax.hessian``
     over the few variables the rows are nonlinear in (``_transition_curvature_columns``), and the
@@ -150,8 +157,7 @@ def _transition_hessian(task, z, z_next, theta, y_equality, y_inequality):
 
     w0 = jnp.concatenate([z, z_next, theta])
     hessian = _hessian_over(weighted, w0, _transition_curvature_columns(task.layout))
-    theta_columns = jax.jacfwd(lambda th: jax.grad(weighted)(w0.at[2 * nz :].set(th)))(theta)  # (2 nz + ng, ng)
-    return hessian.at[:, 2 * nz :].set(theta_columns).at[2 * nz :, :].set(theta_columns.T)
+    return _with_global_rows(weighted, w0, 2 * nz, hessian)
 
 
 def _transition_inequality(task, z, z_next, theta):
