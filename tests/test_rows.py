@@ -1,10 +1,13 @@
 """Stage-wise constraint rows (``solver.rows``) against the dense Jacobian they stand for."""
 
+import types
+
 import numpy as np
 import pytest
 
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import rows
+from jaxmm.transcription.stagewise import RowSupport
 
 
 def random_rows(K, n, ng, m, transition, seed):
@@ -51,3 +54,32 @@ def test_rows_apply_pull_and_gram_match_the_dense_jacobian(transition):
     np.testing.assert_allclose(np.concatenate([np.asarray(gz).reshape(-1), gt]), dense.T @ v.reshape(-1), atol=1e-12)
     expected = dense.T @ np.diag(w.reshape(-1)) @ dense
     np.testing.assert_allclose(dense_blocks(rows.gram(J, w, K), K, n), expected, atol=1e-12)
+
+
+@pytest.mark.parametrize("transition", [False, True])
+def test_gram_on_row_supports_equals_the_dense_gram(transition):
+    """Rows that are zero outside their declared columns: the run-by-run Gram blocks equal the
+    dense ones (and a wrong partition of the rows is refused by name)."""
+    K, n, ng = 5, 6, 1
+    runs = (RowSupport(0, 2, (0, 3), (1, 2) if transition else ()), RowSupport(2, 2, (), ()),
+            RowSupport(2, 5, (1, 4, 5), (0,) if transition else ()))
+    J, _ = random_rows(K, n, ng, 5, transition, seed=3)
+    mask_now, mask_next = np.zeros((5, n)), np.zeros((5, n))
+    for run in runs:
+        mask_now[run.start:run.stop, list(run.now)] = 1.0
+        mask_next[run.start:run.stop, list(run.next)] = 1.0
+    dense = rows.Rows(J.jz * mask_now, J.jt, None if J.jn is None else J.jn * mask_next)
+    sparse = rows.Rows(dense.jz, dense.jt, dense.jn, runs)
+    w = np.random.default_rng(4).uniform(0.0, 2.0, size=(K - 1 if transition else K, 5))
+    for ours, expected in zip(rows.gram(sparse, w, K), rows.gram(dense, w, K)):
+        np.testing.assert_allclose(ours, expected, atol=1e-12)
+
+
+def test_group_rows_refuses_supports_that_do_not_partition_the_rows():
+    blocks = types.SimpleNamespace(path_equality_z=np.zeros((3, 4, 5)), path_equality_theta=np.zeros((3, 4, 1)))
+    with pytest.raises(ValueError, match="cover its 4 rows"):
+        rows.group_rows(blocks, "path_equality", (RowSupport(0, 2, (0,)), RowSupport(3, 4, (1,))))
+    with pytest.raises(ValueError, match="column outside"):
+        rows.group_rows(blocks, "path_equality", (RowSupport(0, 4, (5,)),))
+    with pytest.raises(ValueError, match="next knot"):
+        rows.group_rows(blocks, "path_equality", (RowSupport(0, 4, (0,), (1,)),))

@@ -189,6 +189,33 @@ def test_constraint_curvature_matches_jax_hessian(integration):
         assert np.abs(np.asarray(ours) - np.asarray(expected)).max() <= 1e-10 * max(1.0, np.abs(expected).max())
 
 
+@pytest.mark.parametrize("integration", ["backward_euler", "trapezoidal"])
+def test_row_supports_cover_every_nonzero_of_the_jacobians(integration):
+    """The declared sparsity (``constraints.FAMILY_FIELDS``) the solver's Gram products rely on:
+    at random points, every Jacobian entry outside a run's columns is exactly zero, and the
+    supports are not trivially everything (each run misses some columns)."""
+    task = scenario("walk_to_fly", knots=3, integration=integration)
+    nlp = transcription.stagewise_nlp(task)
+    supports = stagewise.row_supports(nlp)
+    nz = nlp.knot_size
+    blocks = jax.jit(stagewise.blocks)
+    for seed in range(3):
+        Z, theta = _random_point(task, seed)
+        B = blocks(nlp, Z, theta)
+        for group, runs in supports.items():
+            jz = np.asarray(getattr(B, group + "_z"))
+            jn = None if group.startswith("path") else np.asarray(getattr(B, group + "_znext"))
+            assert runs[-1].stop == jz.shape[1]
+            for run in runs:
+                for block, columns in ((jz, run.now), (jn, run.next)):
+                    if block is None:
+                        continue
+                    outside = np.setdiff1d(np.arange(nz), columns)
+                    assert len(outside) > 0
+                    assert np.all(block[:, run.start:run.stop][:, :, outside] == 0.0), (group, run.start)
+                    assert np.any(block[:, run.start:run.stop] != 0.0), (group, run.start)
+
+
 def test_resample_interpolates_knots_in_time_and_keeps_unit_quaternions():
     task = scenario("take_off", knots=6, keep_horizon=True)
     guess = initial_guess(task)

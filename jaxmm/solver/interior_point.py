@@ -164,16 +164,6 @@ def outside(value, lower, upper):
     return jnp.maximum(jnp.maximum(lower - value, value - upper), 0.0)
 
 
-def _group_rows(B, group):
-    if group.startswith("path"):
-        return rows.Rows(getattr(B, group + "_z"), getattr(B, group + "_theta"))
-    return rows.Rows(getattr(B, group + "_z"), getattr(B, group + "_theta"), getattr(B, group + "_znext"))
-
-
-def _scaled_rows(r, scale):
-    return rows.Rows(*(None if j is None else j * scale[..., None] for j in (r.jz, r.jt, r.jn)))
-
-
 def _row_scale(r, max_gradient):
     """IPOPT's gradient-based row scaling: min(1, max_gradient / ‖∇cᵢ‖∞) per row."""
     largest = jnp.maximum(jnp.max(jnp.abs(r.jz), axis=-1, initial=0.0), jnp.max(jnp.abs(r.jt), axis=-1, initial=0.0))
@@ -294,7 +284,7 @@ def _scaling(nlp, Z0, theta0, options):
     B0 = stagewise.blocks(nlp, Z0, theta0)
     cost_scale = jnp.minimum(1.0, options.max_gradient / jnp.maximum(
         jnp.maximum(jnp.max(jnp.abs(B0.cost_z)), jnp.max(jnp.abs(B0.cost_theta))), 1e-300))
-    return cost_scale, tuple(_row_scale(_group_rows(B0, g), options.max_gradient) for g in GROUPS)
+    return cost_scale, tuple(_row_scale(rows.group_rows(B0, g), options.max_gradient) for g in GROUPS)
 
 
 def _frame(nlp, scaling):
@@ -380,14 +370,15 @@ def advance(nlp, state, options=Options(), until=None):
     fixed_z = (~bounds.free[0]).astype(dtype)
     fixed_t = (~bounds.free[1]).astype(dtype)
     fz, ft = 1 - fixed_z, 1 - fixed_t
+    supports = stagewise.row_supports(nlp)
 
     def body(state):
         P, y, zl, zu = state.P, state.y, state.zl, state.zu
         Z, theta = P[0], P[1]
         B = stagewise.blocks(nlp, Z, theta)
         _, c, r_now = evaluate(P)
-        J = tuple(_scaled_rows(_group_rows(B, g), s) for g, s in zip(GROUPS, row_scale))
-        J = J[:2] + tuple(_scaled_rows(r, a) for r, a in zip(J[2:], active))
+        J = tuple(rows.scaled(rows.group_rows(B, g, supports.get(g)), s) for g, s in zip(GROUPS, row_scale))
+        J = J[:2] + tuple(rows.scaled(r, a) for r, a in zip(J[2:], active))
         # Gradient of the Lagrangian f + yᵀc (bounds apart), per primal leaf.
         gz, gt = cost_scale * B.cost_z, cost_scale * B.cost_theta
         for r, yi in zip(J, y):

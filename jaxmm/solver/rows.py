@@ -10,17 +10,48 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Rows:
     """Jacobians of one group: jz (R, m, n) w.r.t. the row's knot, jn (R, m, n) w.r.t. the next
-    knot (transition rows; None for path rows, R = K), jt (R, m, ng) w.r.t. the globals."""
+    knot (transition rows; None for path rows, R = K), jt (R, m, ng) w.r.t. the globals;
+    supports (static, optional): the group's ``stagewise.RowSupport`` partition of its m rows,
+    which ``gram`` exploits."""
 
     jz: jax.Array
     jt: jax.Array
     jn: jax.Array | None = None
+    supports: tuple | None = dataclasses.field(default=None, metadata=dict(static=True))
+
+
+def group_rows(blocks, group, supports=None):
+    """The ``Rows`` of one constraint group ("path_equality", …) of a ``stagewise.Blocks``, with
+    the group's row supports (from ``StagewiseFunctions.row_supports``) checked to partition
+    its rows."""
+    jz, jt = getattr(blocks, group + "_z"), getattr(blocks, group + "_theta")
+    jn = None if group.startswith("path") else getattr(blocks, group + "_znext")
+    if supports is not None:
+        supports = tuple(supports)
+        m, n = jz.shape[-2:]
+        runs = [(s.start, s.stop) for s in supports]
+        if [a for a, _ in runs] != [0] + [b for _, b in runs[:-1]] or (runs[-1][1] if runs else 0) != m:
+            raise ValueError(f"row supports of {group} must cover its {m} rows in consecutive runs, got {runs}")
+        for s in supports:
+            columns = np.asarray(tuple(s.now) + tuple(s.next), dtype=int)
+            if columns.size and (columns.min() < 0 or columns.max() >= n):
+                raise ValueError(f"row supports of {group}: a column outside 0..{n - 1} in rows {s.start}:{s.stop}")
+            if jn is None and len(s.next):
+                raise ValueError(f"row supports of {group}: path rows cannot depend on the next knot")
+    return Rows(jz, jt, jn, supports)
+
+
+def scaled(rows, scale):
+    """The rows times scale (R, m), row by row."""
+    return dataclasses.replace(rows, **{name: None if j is None else j * scale[..., None]
+                                        for name, j in (("jz", rows.jz), ("jt", rows.jt), ("jn", rows.jn))})
 
 
 def apply(rows, dz, dt):
@@ -45,10 +76,15 @@ def pull(rows, v, K):
 
 
 def gram(rows, w, K):
-    """Blocks (D, L, B, C) of Jᵀ diag(w) J for row weights w (R, m)."""
+    """Blocks (D, L, B, C) of Jᵀ diag(w) J for row weights w (R, m).
+
+    With ``rows.supports`` the knot blocks are formed run by run on the run's columns alone
+    (on iRonCub ≈ 3 % of a dense block's products)."""
     jz, jt = rows.jz, rows.jt
     n, ng = jz.shape[-1], jt.shape[-1]
     C = jnp.einsum("kmg,km,kmh->gh", jt, w, jt)
+    if rows.supports is not None:
+        return _sparse_gram(rows, w, K) + (C,)
     if rows.jn is None:
         D = jnp.einsum("kma,km,kmb->kab", jz, w, jz)
         return D, jnp.zeros((K - 1, n, n), w.dtype), jnp.einsum("kma,km,kmg->kag", jz, w, jt), C
@@ -60,6 +96,34 @@ def gram(rows, w, K):
     B = B.at[:-1].add(jnp.einsum("kma,km,kmg->kag", jz, w, jt))
     B = B.at[1:].add(jnp.einsum("kma,km,kmg->kag", jn, w, jt))
     return D, jnp.einsum("kma,km,kmb->kab", jn, w, jz), B, C
+
+
+def _sparse_gram(rows, w, K):
+    """(D, L, B) of ``gram`` from the row supports: per run, the products of its columns only,
+    added into the blocks at those columns."""
+    jz, jt, jn = rows.jz, rows.jt, rows.jn
+    n = jz.shape[-1]
+    transition = jn is not None
+    D = jnp.zeros((K, n, n), w.dtype)
+    L = jnp.zeros((K - 1, n, n), w.dtype)
+    knots = slice(None, -1) if transition else slice(None)
+    for s in rows.supports:
+        now, following = np.asarray(s.now, dtype=int), np.asarray(s.next, dtype=int)
+        if s.stop == s.start:
+            continue
+        ws = w[:, s.start:s.stop]
+        a = jz[:, s.start:s.stop][:, :, now]
+        D = D.at[knots, now[:, None], now[None, :]].add(jnp.einsum("kma,km,kmb->kab", a, ws, a))
+        if transition and following.size:
+            b = jn[:, s.start:s.stop][:, :, following]
+            D = D.at[1:, following[:, None], following[None, :]].add(jnp.einsum("kma,km,kmb->kab", b, ws, b))
+            L = L.at[:, following[:, None], now[None, :]].add(jnp.einsum("kma,km,kmb->kab", b, ws, a))
+    # The border is n × ng per knot: dense is as cheap as any gather.
+    B = jnp.einsum("kma,km,kmg->kag", jz, w, jt)
+    if transition:
+        B = jnp.zeros((K, n, jt.shape[-1]), w.dtype).at[:-1].add(B).at[1:].add(
+            jnp.einsum("kma,km,kmg->kag", jn, w, jt))
+    return D, L, B
 
 
 def add(*blocks):

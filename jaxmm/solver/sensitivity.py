@@ -287,12 +287,6 @@ def _kkt_residual(nlp, barrier, Z, theta, y):
     )
 
 
-def _group_rows(B, group):
-    if group.startswith("path"):
-        return rows.Rows(getattr(B, group + "_z"), getattr(B, group + "_theta"))
-    return rows.Rows(getattr(B, group + "_z"), getattr(B, group + "_theta"), getattr(B, group + "_znext"))
-
-
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class _KKT:
@@ -321,12 +315,13 @@ def _kkt(nlp, Z, theta, y, barrier, options):
     free_z = (~barrier.fixed[0]).astype(Z.dtype)
     free_t = (~barrier.fixed[1]).astype(Z.dtype)
     jacobians, scales = [], []
+    supports = stagewise.row_supports(nlp)
     for group, mask in zip(GROUPS, _row_masks(barrier, y)):
-        r = _group_rows(B, group)
+        r = rows.group_rows(B, group, supports.get(group))
         if r.jn is None:
-            r = rows.Rows(r.jz * free_z[:, None, :], r.jt * free_t)
+            r = dataclasses.replace(r, jz=r.jz * free_z[:, None, :], jt=r.jt * free_t)
         else:
-            r = rows.Rows(r.jz * free_z[:-1, None, :], r.jt * free_t, r.jn * free_z[1:, None, :])
+            r = dataclasses.replace(r, jz=r.jz * free_z[:-1, None, :], jt=r.jt * free_t, jn=r.jn * free_z[1:, None, :])
         largest = jnp.max(jnp.abs(r.jz), axis=-1, initial=0.0)
         largest = jnp.maximum(largest, jnp.max(jnp.abs(r.jt), axis=-1, initial=0.0))
         if r.jn is not None:
@@ -335,7 +330,7 @@ def _kkt(nlp, Z, theta, y, barrier, options):
         # keeps it zero and lets the residual report the latter.
         scale = jnp.where(mask, 1.0 / jnp.where(largest > 0, largest, 1.0), 0.0)
         scales.append(scale)
-        jacobians.append(rows.Rows(*(None if j is None else j * scale[..., None] for j in (r.jz, r.jt, r.jn))))
+        jacobians.append(rows.scaled(r, scale))
     D, L, Bd, C = rows.add(
         (B.cost_zz, jnp.zeros_like(B.cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta),
         stagewise.constraint_curvature(nlp, Z, theta, *(getattr(y, g) for g in GROUPS)),

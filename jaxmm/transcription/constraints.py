@@ -21,6 +21,34 @@ TRANSITION_EQUALITIES = (
 PATH_INEQUALITIES = ("friction_cone", "normal_complementarity", "corner_com", "jet_com")
 TRANSITION_INEQUALITIES = ("planar_complementarity",)
 
+_Q = ("base_position", "base_quaternion", "joint_positions")
+_NU = ("base_linear_velocity", "base_angular_velocity", "joint_velocities")
+# The knot fields each family can depend on: (at knot k, at knot k + 1). This is the sparsity
+# of the Jacobians that the solver's Gram products exploit; it covers both integration rules
+# (the trapezoidal one adds the derivative at k) and is checked against the Jacobians in tests.
+FAMILY_FIELDS = dict(
+    centroidal_dynamics=(("com", "com_acceleration", "angular_momentum_rate", "contact_forces", "contact_points",
+                          "thrust") + _Q, ()),
+    com=(("com",) + _Q, ()),
+    angular_momentum=(("angular_momentum",) + _Q + _NU, ()),
+    contact_points=(("contact_points",) + _Q, ()),
+    jet_dynamics=(("thrust", "thrust_rate", "thrust_acceleration", "throttle"), ()),
+    com_integration=(("com", "com_velocity"), ("com", "com_velocity")),
+    com_velocity_integration=(("com_velocity",), ("com_velocity", "com_acceleration")),
+    angular_momentum_integration=(("angular_momentum",), ("angular_momentum", "angular_momentum_rate")),
+    base_position_integration=(("base_position",), ("base_position", "base_linear_velocity")),
+    base_quaternion_integration=(("base_quaternion",), ("base_quaternion", "base_angular_velocity")),
+    joint_integration=(("joint_positions",), ("joint_positions", "joint_velocities")),
+    force_integration=(("contact_forces",), ("contact_forces", "contact_force_rates")),
+    thrust_integration=(("thrust",), ("thrust", "thrust_rate")),
+    thrust_rate_integration=(("thrust_rate", "thrust_acceleration"), ("thrust_rate", "thrust_acceleration")),
+    friction_cone=(("contact_forces",), ()),
+    normal_complementarity=(("contact_forces", "contact_points", "normal_slack"), ()),
+    corner_com=(("contact_points", "com"), ()),
+    jet_com=(("com",) + _Q, ()),
+    planar_complementarity=(("contact_forces", "contact_points", "tangential_slack"), ("contact_points",)),
+)
+
 
 def knot_kinematics(task, configuration):
     """CoM, CMM and the poses of the contact corners and jets at q (``centroidal_kinematics``)."""

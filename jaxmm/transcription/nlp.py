@@ -10,7 +10,7 @@ import numpy as np
 
 from jaxmm.centroidal import centroidal_kinematics_curvature
 from jaxmm.transcription import constraints, costs
-from jaxmm.transcription.stagewise import StagewiseFunctions, StagewiseNLP
+from jaxmm.transcription.stagewise import RowSupport, StagewiseFunctions, StagewiseNLP
 from jaxmm.transcription.variables import Trajectory
 
 
@@ -165,6 +165,23 @@ def _transition_inequality(task, z, z_next, theta):
     return _concat(values, constraints.TRANSITION_INEQUALITIES)
 
 
+def _row_supports(task):
+    """{group: RowSupport per family}: the columns of z̃_k (and z̃_{k+1}) each family's rows can
+    depend on (``constraints.FAMILY_FIELDS``), from the task's static layout."""
+    layout = task.layout
+    out = {}
+    for group, families in family_rows(task).items():
+        runs, start = [], 0
+        for name, size in families:
+            now, following = constraints.FAMILY_FIELDS[name]
+            columns = [np.concatenate([_columns(layout, f) for f in fields]) if fields else np.zeros(0, int)
+                       for fields in (now, following)]
+            runs.append(RowSupport(start, start + size, *(tuple(int(c) for c in np.sort(x)) for x in columns)))
+            start += size
+        out[group] = tuple(runs)
+    return out
+
+
 FUNCTIONS = StagewiseFunctions(
     knot_cost=_knot_cost,
     knot_cost_hessian=_knot_cost_hessian,
@@ -175,6 +192,7 @@ FUNCTIONS = StagewiseFunctions(
     transition_inequality=_transition_inequality,
     path_hessian=_path_hessian,
     transition_hessian=_transition_hessian,
+    row_supports=_row_supports,
 )
 
 

@@ -32,7 +32,12 @@ class StagewiseFunctions:
     knot_cost_hessian (optional): (args, z, θ, d) → (∂²φ/∂z² (nz, nz), ∂²φ/∂z∂θ (nz, ng),
     ∂²φ/∂θ² (ng, ng)), likewise;
     transition_hessian (optional): (args, z, z_next, θ, y_t (mt,), y_h (mh,)) → (2 nz + ng,
-    2 nz + ng), the Hessian of y_t·t + y_h·h w.r.t. (z, z_next, θ), likewise.
+    2 nz + ng), the Hessian of y_t·t + y_h·h w.r.t. (z, z_next, θ), likewise;
+    row_supports (optional): (args) → {group: tuple of ``RowSupport``}, for each of the four
+    constraint groups ("path_equality", …) a partition of its rows into consecutive runs with the
+    columns of z_k (and z_{k+1}) they can depend on: the Jacobians' sparsity pattern, static
+    (from args' static fields only). The solver forms its Gram products Jᵀ W J on those columns
+    alone; a pattern that misses a non-zero gives a wrong Newton matrix.
     """
 
     knot_cost: Callable
@@ -44,6 +49,18 @@ class StagewiseFunctions:
     path_hessian: Callable | None = None
     knot_cost_hessian: Callable | None = None
     transition_hessian: Callable | None = None
+    row_supports: Callable | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class RowSupport:
+    """Rows start:stop of a constraint group depend on z_k only through the columns ``now`` and
+    (transition rows) on z_{k+1} only through ``next``; tuples of ints (static, hashable)."""
+
+    start: int
+    stop: int
+    now: tuple
+    next: tuple = ()
 
 
 @jax.tree_util.register_dataclass
@@ -179,6 +196,12 @@ def blocks(nlp, Z, theta):
         transition_inequality_znext=ti_znext,
         transition_inequality_theta=ti_theta,
     )
+
+
+def row_supports(nlp):
+    """{group: tuple of ``RowSupport``} from ``StagewiseFunctions.row_supports`` ({} without it)."""
+    f = nlp.functions.row_supports
+    return {} if f is None else dict(f(nlp.args))
 
 
 def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path_inequality, transition_inequality):
