@@ -17,7 +17,7 @@ What is measured (wall clock):
   call needed); solve time / B; the iterations of the batch (the loop runs until its slowest
   instance stops: max over instances) and the instances' own iterations (min–max); statuses.
 * sequential: the first --sequential guesses (default: the largest B) solved one after another
-  with ``optimise._solve`` compiled once for one guess (compile reported apart), each call
+  with ``optimise.compile_solve`` compiled once for one guess (compile reported apart), each call
   timed once; their sum, and their median for "one solve".
 * ratios: batch solve time / (one sequential solve), the issue's goal being ≤ 8 for B = 64,
   and the sequential time of the same B guesses / batch solve time (> 1: the batch is faster).
@@ -89,11 +89,11 @@ def run_batch(task, guesses, options, repeats):
 def run_sequential(task, guesses, options):
     """(compile seconds, [solve seconds], [TaskSolution]) of the guesses one after another."""
     first = batch.instance(guesses, 0)
-    compiled, compile_time = timed(lambda: optimise._solve.lower(task, first, options, None, None).compile())
+    compiled, compile_time = timed(lambda: optimise.compile_solve(task, first, options))
     times, results = [], []
     for i in range(batch.batch_size(guesses)):
         guess = batch.instance(guesses, i)
-        result, seconds = timed(lambda: jax.block_until_ready(compiled(task, guess, None, None)))
+        result, seconds = timed(lambda: jax.block_until_ready(compiled(guess)))
         log(f"  sequential {i + 1}: {format_time(seconds)}, {result.status.name.lower()}, "
             f"{int(result.solution.iterations)} iterations")
         times.append(seconds)

@@ -8,9 +8,9 @@ given, started from ``tasks.initial_guess``.
 
 What is measured (wall clock):
 
-* ours: compile time = ``jaxmm.optimise._solve.lower(task, guess, options, None, None).compile()``
-  (tracing, lowering and XLA compilation of the whole solve, one ``lax.while_loop``); solve time
-  = median over --repeats calls of the compiled executable (``jax.block_until_ready``); it is
+* ours: compile time = ``jaxmm.optimise.compile_solve(task, guess, options)``
+  (tracing, lowering and XLA compilation of the solve's three programs: start, the iterations
+  in one ``lax.while_loop``, finish); solve time = median over --repeats calls of them (``jax.block_until_ready``); it is
   compiled ahead of time, so there is no warm-up call. Also: the problem size (variables =
   (N + 1) knots × knot size + T_total; equality and inequality rows from the shapes of
   ``stagewise.residuals``, each inequality row two-sided with its own bounds, variable boxes
@@ -91,10 +91,10 @@ def measure(task, trajectory):
 
 def solve_ours(task, guess, options, repeats):
     """(compile seconds, median solve seconds, TaskSolution) of the compiled solve."""
-    compiled, compile_time = timed(lambda: optimise._solve.lower(task, guess, options, None, None).compile())
+    compiled, compile_time = timed(lambda: optimise.compile_solve(task, guess, options))
     times, result = [], None
     for _ in range(repeats):
-        result, seconds = timed(lambda: jax.block_until_ready(compiled(task, guess, None, None)))
+        result, seconds = timed(lambda: jax.block_until_ready(compiled()))
         times.append(seconds)
     return compile_time, statistics.median(times), result
 

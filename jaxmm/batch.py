@@ -196,12 +196,12 @@ def _over(one, vectorised):
 
 def _instances(options, vectorised):
     """The solve of a batch of (task, guess) instances (see ``_over``)."""
-    return _over(lambda task, guess: optimise._solve(task, guess, options, None, None), vectorised)
+    return _over(lambda task, guess: optimise.solve_program(task, guess, options), vectorised)
 
 
 @functools.partial(jax.jit, static_argnames=("options", "vectorised"))
 def _solve_batch(tasks, guesses, options, vectorised=True):
-    """``optimise._solve`` over a batched task and its guesses (see ``_instances``)."""
+    """``optimise.solve_program`` over a batched task and its guesses (see ``_instances``)."""
     return _instances(options, vectorised)(tasks, guesses)
 
 

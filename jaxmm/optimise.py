@@ -56,14 +56,17 @@ def task_solution(task, nlp, solution):
     return TaskSolution(transcription.to_trajectory(task, solution.Z, solution.theta), solution, families)
 
 
-@functools.partial(jax.jit, static_argnames="options")
-def _solve(task, guess, options, multipliers, bound_multipliers, scaling=None):
+def solve_program(task, guess, options, multipliers=None, bound_multipliers=None, scaling=None):
+    """The whole solve of ``task`` from ``guess`` as one traceable function → ``TaskSolution``
+    (what ``batch`` vmaps; ``solve_task`` runs it as the three compiled slices below)."""
     nlp = transcription.stagewise_nlp(task)
     Z0, theta0 = transcription.to_variables(task, guess)
     return task_solution(task, nlp, ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers, scaling))
 
 
-# The same solve in slices, for stopping.run: start, advance to an iteration count, finish.
+# The solve in three programs: start, advance to an iteration count, finish. Run one after the
+# other (or in slices, by stopping.run), every solve of a structure shares the one heavy program,
+# advance, whatever its start (cold, warm, another scaling), its time budget or its interrupts.
 @functools.partial(jax.jit, static_argnames="options")
 def _start(task, guess, options, multipliers, bound_multipliers, scaling=None):
     Z0, theta0 = transcription.to_variables(task, guess)
@@ -146,8 +149,8 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_
     ``TIME_LIMIT`` and its last iterate. interruptible: the first Ctrl-C (SIGINT, a notebook's
     interrupt) stops the solve the same way with status ``INTERRUPTED``; a second one raises
     KeyboardInterrupt. Both run the solve in slices of about half a second
-    (``jaxmm.solver.stopping``); without them (the default) it is one XLA call (``_solve``, the
-    program ``batch`` vmaps), which a Ctrl-C cannot stop.
+    (``jaxmm.solver.stopping``); without them (the default) the iterations are one XLA call,
+    which a Ctrl-C cannot stop.
 
     Raises TypeError/ValueError naming the problem for a guess or warm start of the wrong type,
     shape or dtype, or with non-finite entries, and for a time budget that is not positive.
@@ -159,33 +162,40 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_
         if warm_start is None:
             raise ValueError("same_scaling=True needs a warm_start (whose scaling to keep)")
         scaling = warm_start.solution.scaling
+    state = _start(task, guess, options, multipliers, bound_multipliers, scaling)
+    options = ip.iteration_options(options)
     if time_budget is None and not interruptible:
-        return _solve(task, guess, options, multipliers, bound_multipliers, scaling)
-    return stopping.run(
-        _start(task, guess, options, multipliers, bound_multipliers, scaling),
-        lambda state, until: _advance(task, state, options, until), lambda state, stopped: _finish(task, state, stopped),
-        options.max_iterations, time_budget=time_budget, interruptible=interruptible)
+        return _finish(task, _advance(task, state, options, options.max_iterations), int(ip.Status.MAX_ITERATIONS))
+    return stopping.run(state, lambda s, until: _advance(task, s, options, until),
+                        lambda s, stopped: _finish(task, s, stopped), options.max_iterations,
+                        time_budget=time_budget, interruptible=interruptible)
 
 
 def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *, time_budget=None,
                   interruptible=False):
     """Compile the solve of ``task`` ahead of time, as ``solve_task`` would run it, without
-    running it: returns ``run``, a function of no arguments → ``TaskSolution``. For callers that
+    running it: returns ``run(guess=None)`` → ``TaskSolution``, from the compiled guess or from
+    another of the same shapes (checked as ``solve_task`` checks it). For callers that
     report (or time) compiling apart from solving; the compiled program is also the one
     ``solve_task`` reuses for every task of the same structure. time_budget, interruptible: as
-    for ``solve_task`` (the sliced solve's three programs are compiled here; when run, the first
-    slice then includes no compiling)."""
+    for ``solve_task`` (its three programs are compiled here, so the first slice of a sliced
+    solve includes no compiling)."""
     guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
     stopping.check_budget(time_budget)
-    if time_budget is None and not interruptible:
-        compiled = _solve.lower(task, guess, options, multipliers, bound_multipliers).compile()
-        return lambda: compiled(task, guess, multipliers, bound_multipliers)
     start = _start.lower(task, guess, options, multipliers, bound_multipliers).compile()
     state = jax.eval_shape(lambda *arguments: _start(*arguments[:2], options, *arguments[2:]), task, guess, multipliers,
                            bound_multipliers)
-    advance = _advance.lower(task, state, options, 0).compile()
-    finish = _finish.lower(task, state, 0).compile()
-    return lambda: stopping.run(
-        start(task, guess, multipliers, bound_multipliers), lambda s, until: advance(task, s, until),
-        lambda s, stopped: finish(task, s, stopped), options.max_iterations, time_budget=time_budget,
-        interruptible=interruptible)
+    options = ip.iteration_options(options)
+    advance = _advance.lower(task, state, options, options.max_iterations).compile()
+    finish = _finish.lower(task, state, int(ip.Status.MAX_ITERATIONS)).compile()
+
+    def run(other=None):
+        if other is not None:
+            check_guess(task, other)
+        state = start(task, guess if other is None else other, multipliers, bound_multipliers)
+        if time_budget is None and not interruptible:
+            return finish(task, advance(task, state, options.max_iterations), int(ip.Status.MAX_ITERATIONS))
+        return stopping.run(state, lambda s, until: advance(task, s, until), lambda s, stopped: finish(task, s, stopped),
+                            options.max_iterations, time_budget=time_budget, interruptible=interruptible)
+
+    return run

@@ -130,7 +130,9 @@ def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, probl
     assert batch._solve_batch._cache_size() == compiled
     assert [ip.Status(int(s)) for s in result.solution.status] == [ip.Status.NAN] * 3
     np.testing.assert_array_equal(np.asarray(result.solution.iterations), 1)
-    single = optimise._solve(task, guess, optimise.DEFAULT_OPTIONS, None, None)
+    options = optimise.DEFAULT_OPTIONS  # the solve_task's three programs, below its boundary check
+    state = optimise._start(task, guess, options, None, None)
+    single = optimise._finish(task, optimise._advance(task, state, options, options.max_iterations), int(ip.Status.MAX_ITERATIONS))
     assert single.status is ip.Status.NAN and int(single.solution.iterations) == 1
 
 

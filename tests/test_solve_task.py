@@ -119,11 +119,14 @@ def test_warm_start_from_the_solution_of_a_neighbouring_task(take_off):
     """A target 2 cm lower, started from the take-off's solution and multipliers, reaches the
     optimum a cold solve of that task reaches, in fewer than half its iterations. (That optimum
     is feasible for the NLP but not physical: with the CoM 2 cm lower, a corner 1 cm up keeps
-    ≈ 6 N, paid for by ≈ 1 of complementarity slack, so ``validate`` is compared, not required.)"""
+    ≈ 6 N, paid for by ≈ 1 of complementarity slack, so ``validate`` is compared, not required.)
+    Both run the iterations the take-off compiled."""
     _, cold = take_off
     neighbour = tasks.scenario("take_off", **REDUCED_TAKE_OFF, final_com=(0.0, 0.0, 0.78))
+    compiled = optimise._advance._cache_size()
     warm = solve_task(neighbour, warm_start=cold)
     reference = solve_task(neighbour)
+    assert optimise._advance._cache_size() == compiled, "the warm start compiled its own iterations"
     assert warm.status is ip.Status.CONVERGED, warm.status.message
     assert reference.status is ip.Status.CONVERGED, reference.status.message
     assert int(warm.solution.iterations) < int(reference.solution.iterations) / 2

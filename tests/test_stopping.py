@@ -102,6 +102,22 @@ def test_a_solve_in_slices_is_the_one_call_solve(whole, monkeypatch):
     np.testing.assert_allclose(np.asarray(sliced.history), np.asarray(whole.history), rtol=1e-10, equal_nan=True)
 
 
+def test_the_iterations_ignore_the_settings_only_the_start_reads():
+    """``iteration_options`` resets barrier0, bound_push and max_gradient, so that one compiled
+    ``advance`` serves cold and warm starts: from the same state, advancing with the settings
+    changed or reset must give the same iterate (it would not if ``advance`` read them)."""
+    changed = ip.Options(**{**OPTIONS.__dict__, "barrier0": 0.5, "bound_push": 0.3, "max_gradient": 7.0})
+    reset = ip.iteration_options(changed)
+    assert (reset.barrier0, reset.bound_push, reset.max_gradient) == (ip.Options.barrier0, ip.Options.bound_push,
+                                                                     ip.Options.max_gradient)
+    assert ip.iteration_options(reset) == reset and reset.max_iterations == changed.max_iterations
+    state = start(_problem(), Z0, THETA0, changed)
+    ours, theirs = advance(_problem(), state, changed, 5), advance(_problem(), state, reset, 5)
+    assert int(ours.iterations) == 5
+    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_a_time_budget_stops_with_the_last_iterate(whole):
     result, slices = _run(_problem(), advance_hook=lambda n: time.sleep(0.05), time_budget=0.12, interruptible=False)
     stopped = int(result.iterations)

@@ -100,6 +100,15 @@ class Options:
     progress: Callable | None = None
 
 
+def iteration_options(options):
+    """``options`` with the settings only ``start`` reads (barrier0, bound_push, max_gradient)
+    at their defaults. ``advance`` gives the same result with either (tested), so one compiled
+    ``advance`` (options are static) serves every start that differs only there: a warm start's
+    barrier settings, say."""
+    return dataclasses.replace(options, barrier0=Options.barrier0, bound_push=Options.bound_push,
+                               max_gradient=Options.max_gradient)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Multipliers:
@@ -340,7 +349,7 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     _, c0, _ = evaluate(P0)
     envelope = jnp.maximum(1.0, _infeasibility(c0))
     v0, _ = violation(nlp, P0[0], P0[1])
-    return State(
+    state = State(
         P=P0, y=y0, zl=zl0, zu=zu0, mu=jnp.asarray(options.barrier0, dtype),
         regularisation=jnp.asarray(0.0, dtype), forced=jnp.asarray(0.0, dtype),
         filter_theta=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(1e4 * envelope),
@@ -351,6 +360,9 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
         scaling=scaling, theta_max=1e4 * envelope, theta_min=1e-4 * envelope,
     )
+    # No weak types: a cold start (θ0 from Python floats) and a warm one must give the same avals,
+    # so that one compiled ``advance`` serves both.
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.result_type(x)), state)
 
 
 def advance(nlp, state, options=Options(), until=None):
