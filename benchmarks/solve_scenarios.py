@@ -10,8 +10,8 @@ What is measured (wall clock):
 
 * ours: compile time = ``jaxmm.optimise.compile_solve(task, guess, options)``
   (tracing, lowering and XLA compilation of the solve's three programs: start, the iterations
-  in one ``lax.while_loop``, finish); solve time = median over --repeats calls of them (``jax.block_until_ready``); it is
-  compiled ahead of time, so there is no warm-up call. Also: the problem size (variables =
+  in one ``lax.while_loop``, finish); solve time = median over --repeats runs of them
+  (``jax.block_until_ready``); they are compiled ahead of time, so there is no warm-up call. Also: the problem size (variables =
   (N + 1) knots × knot size + T_total; equality and inequality rows from the shapes of
   ``stagewise.residuals``, each inequality row two-sided with its own bounds, variable boxes
   not counted), the barrier updates and Newton iterations, the status, and

@@ -164,11 +164,16 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_
         scaling = warm_start.solution.scaling
     state = _start(task, guess, options, multipliers, bound_multipliers, scaling)
     options = ip.iteration_options(options)
+    return _run(state, lambda s, until: _advance(task, s, options, until), lambda s, stopped: _finish(task, s, stopped),
+                options.max_iterations, time_budget, interruptible)
+
+
+def _run(state, advance, finish, max_iterations, time_budget, interruptible):
+    """A started solve to its end: one call of ``advance`` when nothing needs checking between
+    iterations, else slices under ``stopping.run``."""
     if time_budget is None and not interruptible:
-        return _finish(task, _advance(task, state, options, options.max_iterations), int(ip.Status.MAX_ITERATIONS))
-    return stopping.run(state, lambda s, until: _advance(task, s, options, until),
-                        lambda s, stopped: _finish(task, s, stopped), options.max_iterations,
-                        time_budget=time_budget, interruptible=interruptible)
+        return finish(advance(state, max_iterations), int(ip.Status.MAX_ITERATIONS))
+    return stopping.run(state, advance, finish, max_iterations, time_budget=time_budget, interruptible=interruptible)
 
 
 def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *, time_budget=None,
@@ -193,9 +198,7 @@ def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *,
         if other is not None:
             check_guess(task, other)
         state = start(task, guess if other is None else other, multipliers, bound_multipliers)
-        if time_budget is None and not interruptible:
-            return finish(task, advance(task, state, options.max_iterations), int(ip.Status.MAX_ITERATIONS))
-        return stopping.run(state, lambda s, until: advance(task, s, until), lambda s, stopped: finish(task, s, stopped),
-                            options.max_iterations, time_budget=time_budget, interruptible=interruptible)
+        return _run(state, lambda s, until: advance(task, s, until), lambda s, stopped: finish(task, s, stopped),
+                    options.max_iterations, time_budget, interruptible)
 
     return run
