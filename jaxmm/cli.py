@@ -71,10 +71,11 @@ class Progress:
 
     def iteration(self, iteration, record):
         """The solver's per-iteration callback (``Options.progress``)."""
-        objective, violation, stationarity, barrier, step, regularisation = (float(v) for v in record)
+        objective, violation, stationarity, barrier, step, regularisation, solves = (float(v) for v in record)
         self._write(
             f"iteration {int(iteration) + 1:5d}  objective {objective:.6e}  violation {violation:.1e}  "
-            f"stationarity {stationarity:.1e}  barrier μ {barrier:.0e}  step {step:.2g}  regularisation {regularisation:.0e}"
+            f"stationarity {stationarity:.1e}  barrier μ {barrier:.0e}  step {step:.2g}  regularisation {regularisation:.0e}  "
+            f"solves {solves:.0f}"
         )
 
     def done(self):

@@ -1,6 +1,6 @@
 """Saved solutions: a solved task written to one ``.npz`` file with a JSON header, and read back.
 
-The file (format ``jaxmm-solution``, version 1) holds NumPy arrays only (no pickles) and one
+The file (format ``jaxmm-solution``, version 2) holds NumPy arrays only (no pickles) and one
 JSON header ``__header__``:
 
 * ``format``, ``version``, ``jaxmm_version``, ``saved_at`` (UTC, ISO 8601);
@@ -13,6 +13,9 @@ JSON header ``__header__``:
 * ``trajectory`` and ``solution``: skeletons of the ``Trajectory`` (physical units) and of the
   solver's ``Solution`` (scaled variables, multipliers, bound multipliers, history), enough to
   warm-start a new solve from the loaded result.
+
+Version 1 files (before the history recorded the linear solves of each iteration) are read
+too: their history gets that column as NaN.
 
 Arrays are named by their path in the skeleton (``trajectory.knots.com``). Files are written
 atomically: a temporary file in the same directory, renamed over the target once complete.
@@ -36,7 +39,8 @@ from jaxmm.transcription.problem import Task, TaskParams, Weights
 from jaxmm.transcription.variables import Knot, Trajectory
 
 FORMAT = "jaxmm-solution"
-VERSION = 1
+VERSION = 2
+READABLE_VERSIONS = (1, 2)
 _HEADER = "__header__"
 _CLASSES = {cls.__name__: cls for cls in (Trajectory, Knot, ip.Solution, ip.Multipliers, TaskParams, Weights)}
 
@@ -187,8 +191,9 @@ def _open(path):
         raise SolutionFileError(f"{path!r}: corrupt header ({error})") from None
     if header.get("format") != FORMAT:
         raise SolutionFileError(f"{path!r} is not a jaxmm solution file (format {header.get('format')!r})")
-    if header.get("version") != VERSION:
-        raise SolutionFileError(f"{path!r} has format version {header.get('version')}; this jaxmm reads version {VERSION}")
+    if header.get("version") not in READABLE_VERSIONS:
+        raise SolutionFileError(f"{path!r} has format version {header.get('version')}; this jaxmm reads versions "
+                                f"{', '.join(map(str, READABLE_VERSIONS))}")
     return header, arrays
 
 
@@ -237,6 +242,10 @@ def load(path, robot=None):
         )
         trajectory = _decode(header["trajectory"], arrays)
         solution = _decode(header["solution"], arrays)
+        if header["version"] == 1:  # no linear-solves column yet
+            history = np.asarray(solution.history)
+            solution = dataclasses.replace(solution, history=jax.numpy.asarray(
+                np.concatenate([history, np.full((history.shape[0], 1), np.nan)], axis=1)))
         families = {k: jax.numpy.asarray(v) for k, v in header["violation_per_family"].items()}
     except (KeyError, TypeError) as error:
         raise SolutionFileError(f"{os.fspath(path)!r}: incomplete header ({error!r})") from None

@@ -211,6 +211,7 @@ def plot_joints(task, trajectory, *, fig=None, columns=6, contact_height=CONTACT
 _HISTORY_LABELS = dict(
     objective="objective", violation="constraint violation", stationarity="stationarity (scaled)",
     barrier="barrier parameter μ", step_length="step length α", regularisation="regularisation δ_w",
+    linear_solves="block solves (refinement included)",
 )
 
 
@@ -225,8 +226,9 @@ def plot_convergence(result, *, fig=None, tolerance=ip.Options().tolerance):
     if history.ndim != 2 or history.shape[1] != len(ip.HISTORY_COLUMNS):
         raise ValueError(f"the history must have shape (max_iterations, {len(ip.HISTORY_COLUMNS)}), got {history.shape}")
     history = history[:iterations]
-    fig = _figure(fig, figsize=(12, 7), layout="constrained")
-    grid = fig.add_gridspec(3, 3, width_ratios=(1, 1, 1.1))
+    panels = len(ip.HISTORY_COLUMNS)
+    fig = _figure(fig, figsize=(12, 9), layout="constrained")
+    grid = fig.add_gridspec((panels + 1) // 2, 3, width_ratios=(1, 1, 1.1))
     steps = np.arange(iterations)
     first = None
     for index, name in enumerate(ip.HISTORY_COLUMNS):
@@ -243,7 +245,7 @@ def plot_convergence(result, *, fig=None, tolerance=ip.Options().tolerance):
         zeros = " (0 not shown)" if name != "step_length" and np.any(values == 0) else ""
         ax.set_title(_HISTORY_LABELS[name] + zeros, fontsize="medium")
         ax.grid(alpha=0.3, which="both")
-        if index >= 4:
+        if index >= panels - 2:
             ax.set_xlabel("iteration")
     bars = fig.add_subplot(grid[:, 2])
     families = result.violation_per_family

@@ -54,6 +54,23 @@ def test_the_header_is_readable_without_jax(saved):
         assert "trajectory.knots.com" in data.files
 
 
+def test_a_version_1_file_is_read_with_its_history_missing_the_linear_solves(saved, tmp_path):
+    """Files written before the history had its linear-solves column still load (and plot)."""
+    path, _, result = saved
+
+    def as_version_1(arrays):
+        arrays["solution.history"] = arrays["solution.history"][:, :-1]
+        content = json.loads(str(arrays["__header__"]))
+        arrays["__header__"] = np.array(json.dumps({**content, "version": 1}))
+
+    _, loaded = io.load(_rewrite(path, tmp_path / "version_1.npz", as_version_1))
+    history, original = np.asarray(loaded.solution.history), np.asarray(result.solution.history)
+    assert history.shape == original.shape
+    np.testing.assert_array_equal(history[:, :-1], original[:, :-1])
+    assert np.all(np.isnan(history[:, -1]))
+    _leaves_equal(loaded.trajectory, result.trajectory)
+
+
 def test_a_file_from_another_robot_is_refused(saved, ironcub):
     path, _, _ = saved
     without_jets = dataclasses.replace(ironcub, jet_frames=())

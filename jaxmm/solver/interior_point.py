@@ -121,15 +121,16 @@ class Multipliers:
     transition_inequality: jax.Array
 
 
-HISTORY_COLUMNS = ("objective", "violation", "stationarity", "barrier", "step_length", "regularisation")
+HISTORY_COLUMNS = ("objective", "violation", "stationarity", "barrier", "step_length", "regularisation", "linear_solves")
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Solution:
     """Result of a solve: the optimum (scaled NLP variables), multipliers, why it stopped and
-    statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 6) has one row per
-    iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected); rows past
+    statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 7) has one row per
+    iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected; linear
+    solves: block solves with the factor, refinements and second-order corrections included); rows past
     ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations).
     ``bound_multipliers`` (lower, upper), each a tuple over (Z, θ, path slacks, transition
     slacks) in the solver's scaling, are for warm starts. ``slacks`` (path, transition): the
@@ -533,7 +534,7 @@ def advance(nlp, state, options=Options(), until=None):
 
             step = kkt_solve(*a)
             residual = kkt_residual(*a, *step)
-            _, (dx, ds, dy), _, _, _ = jax.lax.while_loop(
+            refinements, (dx, ds, dy), _, _, _ = jax.lax.while_loop(
                 improving, refine, (0, step, residual, _max_abs(jax.tree.leaves(residual)), jnp.asarray(jnp.inf, dtype)))
             dP = dx + ds
             dzl = _tmap(lambda a, p, d, m: jnp.where(m, mu / a - p - p * d / a, 0.0), dl, zl, dP, bounds.has_lower)
@@ -542,9 +543,9 @@ def advance(nlp, state, options=Options(), until=None):
                 dl + du, _tmap(lambda d, m: jnp.where(m, d, 0.0), dP, bounds.has_lower)
                 + _tmap(lambda d, m: jnp.where(m, -d, 0.0), dP, bounds.has_upper), tau)
             alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
-            return (dP, dy, dzl, dzu), alpha_max, alpha_z
+            return (dP, dy, dzl, dzu), alpha_max, alpha_z, 1 + refinements
 
-        newton, alpha_max, alpha_z = direction(c)
+        newton, alpha_max, alpha_z, solves = direction(c)
         dP = newton[0]
 
         # Filter line search on (θ, φ) = (‖c‖₁, f + barrier), IPOPT's acceptance rules.
@@ -573,22 +574,22 @@ def advance(nlp, state, options=Options(), until=None):
         # with the constraint residual of the trial point folded in, up to SOC_STEPS times while
         # each correction cuts the infeasibility by κ_soc = 0.99. Judged with the full step's α.
         def correcting(carry):
-            k, ok, _, th, th_old, _, _, _, _, _ = carry
+            k, ok, _, th, th_old, _, _, _, _, _, _ = carry
             return (~ok) & (k < SOC_STEPS) & ((k == 0) | (th <= 0.99 * th_old))
 
         def correct(carry):
-            k, _, _, th, _, c_soc, alpha_soc, c_trial, _, _ = carry
+            k, _, _, th, _, c_soc, alpha_soc, c_trial, _, _, solves = carry
             c_soc = _tmap(lambda a, b: alpha_soc * a + b, c_soc, c_trial)
-            step, alpha_soc, alpha_z_soc = direction(c_soc)
+            step, alpha_soc, alpha_z_soc, more = direction(c_soc)
             th_soc, ph_soc, c_trial = trial(alpha_soc, step[0])
             ok, f_type = acceptable(alpha_max, th_soc, ph_soc)
-            return k + 1, ok, f_type, th_soc, th, c_soc, alpha_soc, c_trial, step, alpha_z_soc
+            return k + 1, ok, f_type, th_soc, th, c_soc, alpha_soc, c_trial, step, alpha_z_soc, solves + more
 
         try_soc = (~ok1) & (th1 >= theta0_) & factored
-        _, soc_ok, soc_f, _, _, _, alpha_soc, _, soc_step, alpha_z_soc = jax.lax.while_loop(
+        _, soc_ok, soc_f, _, _, _, alpha_soc, _, soc_step, alpha_z_soc, solves = jax.lax.while_loop(
             correcting, correct,
             (jnp.where(try_soc, 0, SOC_STEPS), jnp.asarray(False), jnp.asarray(False), th1, th1, c, alpha_max, c1,
-             newton, alpha_z),
+             newton, alpha_z, solves),
         )
 
         def search(carry):
@@ -631,7 +632,7 @@ def advance(nlp, state, options=Options(), until=None):
         rejections = jnp.where(accepted, 0, state.rejections + 1)
         v_new, _ = violation(nlp, P_new[0], P_new[1])
         record = jnp.stack([
-            stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w,
+            stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w, solves,
         ])
         status = jnp.where(
             converged, int(Status.CONVERGED),
@@ -652,7 +653,7 @@ def advance(nlp, state, options=Options(), until=None):
         # Converged: keep the point where the test held, not the step taken from it.
         new = jax.tree.map(lambda a, b: jnp.where(converged, b, a), new, dataclasses.replace(
             state, status=status, stationarity=error0, iterations=state.iterations + 1,
-            history=state.history.at[state.iterations].set(jnp.stack([cost_now, v_now, error0, mu, 0.0, delta_w]))))
+            history=state.history.at[state.iterations].set(jnp.stack([cost_now, v_now, error0, mu, 0.0, delta_w, 0.0]))))
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves((new.P, new.y, new.zl, new.zu))]))
         new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
         if options.progress is not None:  # the row the history keeps for this iteration
