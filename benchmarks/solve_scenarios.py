@@ -14,7 +14,8 @@ What is measured (wall clock):
   (``jax.block_until_ready``); they are compiled ahead of time, so there is no warm-up call. Also: the problem size (variables =
   (N + 1) knots × knot size + T_total; equality and inequality rows from the shapes of
   ``stagewise.residuals``, each inequality row two-sided with its own bounds, variable boxes
-  not counted), the barrier updates and Newton iterations, the status, and
+  not counted), the barrier updates and Newton iterations, the mean block solves per iteration
+  (the solver history's ``linear_solves``: refinements, second-order corrections), the status, and
   ``jaxmm.analysis.validate`` of the trajectory (its table is printed after the main table).
   The default solver tolerance is 1e-6 on the violation (``optimise.DEFAULT_OPTIONS``).
 * --ipopt: ``solve_ipopt(task, urdf, guess, tol=1e-4)`` (the paper's tolerance, physical units;
@@ -54,6 +55,7 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
+import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
 from machine import format_time, log, machine_lines, render, timed  # noqa: E402
@@ -118,7 +120,7 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter):
     row["ours"] = dict(
         compile=compile_time, solve=solve_time, objective=objective, violation=violation,
         outer=int(result.solution.barrier_updates), inner=int(result.solution.iterations),
-        status=result.status.message, report=analysis.validate(task, result.trajectory),
+        solves=block_solves_per_iteration(result.solution), status=result.status.message, report=analysis.validate(task, result.trajectory),
     )  # fmt: skip
     if urdf_path is not None:
         from jaxmm.reference import solve_ipopt  # the reference extra (casadi, adam-robotics)
@@ -132,11 +134,18 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter):
     return row
 
 
+def block_solves_per_iteration(solution):
+    """Mean number of block solves (refinements, second-order corrections) per iteration."""
+    history = np.asarray(solution.history)[: int(solution.iterations)]
+    return float(np.mean(history[:, ip.HISTORY_COLUMNS.index("linear_solves")])) if len(history) else 0.0
+
+
 def scenario_table(rows):
-    header = ("scenario", "N", "variables", "equalities", "inequalities", "μ updates", "iterations",
+    header = ("scenario", "N", "variables", "equalities", "inequalities", "μ updates", "iterations", "solves / it.",
               "compile", "solve", "objective", "max violation", "status", "validate")  # fmt: skip
     lines = [
-        (r["name"], r["N"], *r["sizes"], r["ours"]["outer"], r["ours"]["inner"], format_time(r["ours"]["compile"]),
+        (r["name"], r["N"], *r["sizes"], r["ours"]["outer"], r["ours"]["inner"], f"{r['ours']['solves']:.1f}",
+         format_time(r["ours"]["compile"]),
          format_time(r["ours"]["solve"]), f"{r['ours']['objective']:.6g}", f"{r['ours']['violation']:.2e}",
          r["ours"]["status"], verdict(r["ours"]["report"]))
         for r in rows
