@@ -236,3 +236,16 @@ def test_progress_callback_sees_every_iteration_record():
     count = int(solution.iterations)
     assert [i for i, _ in records] == list(range(count))
     np.testing.assert_array_equal(np.stack([r for _, r in records]), np.asarray(solution.history)[:count])
+
+
+def test_history_counts_the_block_solves_of_each_iteration():
+    """Every step costs at least one block solve and at most one per refinement of each
+    direction (the Newton step and its second-order corrections); the row of the converged
+    iterate, where no step is taken, records none."""
+    solution = solve(_integrator(CAPPED, energy_cap=0.01), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    count = int(solution.iterations)
+    solves = np.asarray(solution.history)[:count, ip.HISTORY_COLUMNS.index("linear_solves")]
+    assert ip.Status(int(solution.status)) is ip.Status.CONVERGED and count > 3
+    assert solves[-1] == 0
+    assert np.all((solves[:-1] >= 1) & (solves[:-1] <= (1 + ip.REFINEMENT_STEPS) * (1 + ip.SOC_STEPS)))
+    assert np.all(solves == np.round(solves))
