@@ -120,7 +120,8 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter):
     row["ours"] = dict(
         compile=compile_time, solve=solve_time, objective=objective, violation=violation,
         outer=int(result.solution.barrier_updates), inner=int(result.solution.iterations),
-        solves=block_solves_per_iteration(result.solution), status=result.status.message, report=analysis.validate(task, result.trajectory),
+        solves=block_solves_per_iteration(result.solution), status=result.status.message,
+        report=analysis.validate(task, result.trajectory),
     )  # fmt: skip
     if urdf_path is not None:
         from jaxmm.reference import solve_ipopt  # the reference extra (casadi, adam-robotics)
@@ -145,9 +146,8 @@ def scenario_table(rows):
               "compile", "solve", "objective", "max violation", "status", "validate")  # fmt: skip
     lines = [
         (r["name"], r["N"], *r["sizes"], r["ours"]["outer"], r["ours"]["inner"], f"{r['ours']['solves']:.1f}",
-         format_time(r["ours"]["compile"]),
-         format_time(r["ours"]["solve"]), f"{r['ours']['objective']:.6g}", f"{r['ours']['violation']:.2e}",
-         r["ours"]["status"], verdict(r["ours"]["report"]))
+         format_time(r["ours"]["compile"]), format_time(r["ours"]["solve"]), f"{r['ours']['objective']:.6g}",
+         f"{r['ours']['violation']:.2e}", r["ours"]["status"], verdict(r["ours"]["report"]))
         for r in rows
     ]  # fmt: skip
     return render(header, lines)

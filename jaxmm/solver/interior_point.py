@@ -130,8 +130,8 @@ class Solution:
     """Result of a solve: the optimum (scaled NLP variables), multipliers, why it stopped and
     statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 7) has one row per
     iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected; linear
-    solves: block solves with the factor, refinements and second-order corrections included); rows past
-    ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations).
+    solves: block solves with the factor, refinements and second-order corrections included);
+    rows past ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations).
     ``bound_multipliers`` (lower, upper), each a tuple over (Z, θ, path slacks, transition
     slacks) in the solver's scaling, are for warm starts. ``slacks`` (path, transition): the
     inequality rows' slacks, scaled by the row factors; ``scaling`` = (cost factor (), per-row
