@@ -48,6 +48,20 @@ def test_not_positive_definite_is_reported():
     D[2] -= 1e3 * np.eye(3)
     chol = linalg.factor(D, L, B, C)
     assert not bool(chol.ok)
+    # The factorisation stops at the first failing block: blocks 0 and 1 factored, 2 and 3 not.
+    assert int(chol.factored) == 2
+    assert np.all(np.asarray(chol.diagonal[3]) == 0.0)
+
+
+def test_a_failing_last_block_or_schur_complement_is_reported():
+    A, D, L, B, C = _random_system(4, 3, 1, seed=2)
+    last = D.copy()
+    last[3] -= 1e3 * np.eye(3)
+    chol = linalg.factor(last, L, B, C)
+    assert not bool(chol.ok) and int(chol.factored) == 3
+    chol = linalg.factor(D, L, B, C - 1e3)
+    assert int(chol.factored) == 4 and not bool(chol.ok)
+    assert bool(linalg.factor(D, L, B, C).ok)
 
 
 def test_vmap_over_systems():

@@ -17,7 +17,7 @@ matrix W + Σ + δ_w I + ρ JᵀJ (the slacks are eliminated row by row). Its in
 exactly when its block Cholesky succeeds, which makes the factorisation the inertia test;
 δ_w grows until it does. W is the exact Hessian of the Lagrangian (cost Hessian plus the
 constraints' curvature at λ). Every linear system is bordered block-tridiagonal and solved by
-``linalg`` (block Cholesky in ``lax.scan``, Schur complement for the globals); each step is then
+``linalg`` (block Cholesky in a ``lax.while_loop``, Schur complement for the globals); each step is then
 refined towards the exact (δ = 0) KKT system, with the regularised factor as preconditioner.
 When the full step increases the infeasibility, IPOPT's second-order corrections are tried.
 

@@ -6,10 +6,10 @@
     [             L_{K−1} D_{K−1} B_{K−1} ] [   ]   [   ]
     [ B_0ᵀ  B_1ᵀ   …     B_{K−1}ᵀ C       ] [y  ]   [s  ]
 
-The block Cholesky factorisation runs forward in ``jax.lax.scan`` (a Riccati-like recursion,
+The block Cholesky factorisation runs forward in a ``jax.lax.while_loop`` (a Riccati-like recursion,
 O(K n³)); the border (the global variables) is eliminated by a Schur complement. No dense
 factorisation of the whole matrix is ever formed. A matrix that is not positive definite
-gives a factor with non-finite entries: ``BlockCholesky.ok`` reports it.
+stops the factorisation at its first failing block: ``BlockCholesky.ok`` reports it.
 """
 
 import dataclasses
@@ -23,55 +23,69 @@ from jax.scipy.linalg import solve_triangular
 @dataclasses.dataclass(frozen=True)
 class BlockCholesky:
     """A = 𝓛 𝓛ᵀ with 𝓛 block lower-bidiagonal: diagonal (K, n, n), sub-diagonal (K − 1, n, n);
-    plus the border's Schur complement factor (m, m) and A⁻¹B (K, n, m)."""
+    plus the border's Schur complement factor (m, m), A⁻¹B (K, n, m), and the number of
+    diagonal blocks factored (K unless a block was not positive definite: the rest are 0)."""
 
     diagonal: jax.Array
     subdiagonal: jax.Array
     border_solution: jax.Array
     schur: jax.Array
     border: jax.Array
+    factored: jax.Array
 
     @property
     def ok(self):
-        """True when every factor is finite (the matrix was positive definite)."""
-        return jnp.all(jnp.isfinite(self.diagonal)) & jnp.all(jnp.isfinite(self.schur))
+        """True when every block was factored and every factor is finite (the matrix was
+        positive definite)."""
+        return (self.factored == self.diagonal.shape[-3]) & jnp.all(jnp.isfinite(self.schur))
 
 
 def _factor_tridiagonal(D, L):
-    """Block Cholesky of the tridiagonal part: returns (Lc (K, n, n), W (K − 1, n, n))."""
-    first = jnp.linalg.cholesky(D[0])
+    """Block Cholesky of the tridiagonal part: returns (Lc (K, n, n), W (K − 1, n, n), the
+    number of diagonal blocks factored before the first that is not positive definite)."""
+    K = D.shape[0]
 
-    def step(previous, blocks):
-        D_k, L_k = blocks
+    def running(carry):
+        k, _, _, ok = carry
+        return ok & (k < K)
+
+    def step(carry):
+        k, Lc, W, _ = carry
         # W_k = L_k Lc_{k−1}^{−T}
-        W = solve_triangular(previous, L_k.T, lower=True).T
-        factor = jnp.linalg.cholesky(D_k - W @ W.T)
-        return factor, (factor, W)
+        W_k = solve_triangular(Lc[k - 1], L[k - 1].T, lower=True).T
+        factor = jnp.linalg.cholesky(D[k] - W_k @ W_k.T)
+        ok = jnp.all(jnp.isfinite(factor))
+        return k + ok, Lc.at[k].set(factor), W.at[k - 1].set(W_k), ok
 
-    _, (rest, W) = jax.lax.scan(step, first, (D[1:], L))
-    return jnp.concatenate([first[None], rest]), W
+    # The factors are updated in place, indexed, rather than stacked as a scan's outputs
+    # (80 ms against 66 ms to factor 71 blocks of 178 × 178 here; 36 ms against 10.5 ms for a
+    # solve, where XLA copied blocks between the two scans). The loop stops at the first
+    # block that is not positive definite: an inertia correction's failed attempts then cost
+    # only the blocks up to it.
+    first = jnp.linalg.cholesky(D[0])
+    ok = jnp.all(jnp.isfinite(first))
+    carry = (ok.astype(jnp.int32), jnp.zeros_like(D).at[0].set(first), jnp.zeros_like(L), ok)
+    factored, Lc, W, _ = jax.lax.while_loop(running, step, carry)
+    return Lc, W, factored
 
 
 def _solve_tridiagonal(Lc, W, R):
     """Solve the tridiagonal part for right-hand sides R (K, n, r) → (K, n, r)."""
-    y0 = solve_triangular(Lc[0], R[0], lower=True)
+    K = Lc.shape[0]
 
-    def forward(previous, blocks):
-        Lc_k, W_k, R_k = blocks
-        y = solve_triangular(Lc_k, R_k - W_k @ previous, lower=True)
-        return y, y
+    def forward(k, y):
+        return y.at[k].set(solve_triangular(Lc[k], R[k] - W[k - 1] @ y[k - 1], lower=True))
 
-    _, ys = jax.lax.scan(forward, y0, (Lc[1:], W, R[1:]))
-    y = jnp.concatenate([y0[None], ys])
-    x_last = solve_triangular(Lc[-1], y[-1], lower=True, trans="T")
+    y = jnp.zeros_like(R).at[0].set(solve_triangular(Lc[0], R[0], lower=True))
+    y = jax.lax.fori_loop(1, K, forward, y)
 
-    def backward(following, blocks):
-        Lc_k, W_next, y_k = blocks
-        x = solve_triangular(Lc_k, y_k - W_next.T @ following, lower=True, trans="T")
-        return x, x
+    def backward(i, x):
+        k = K - 2 - i
+        x_k = solve_triangular(Lc[k], y[k] - W[k].T @ x[k + 1], lower=True, trans="T")
+        return x.at[k].set(x_k)
 
-    _, xs = jax.lax.scan(backward, x_last, (Lc[:-1], W, y[:-1]), reverse=True)
-    return jnp.concatenate([xs, x_last[None]])
+    last = solve_triangular(Lc[-1], y[-1], lower=True, trans="T")
+    return jax.lax.fori_loop(0, K - 1, backward, jnp.zeros_like(R).at[-1].set(last))
 
 
 def factor(D, L, B, C):
@@ -80,15 +94,17 @@ def factor(D, L, B, C):
     D: (K, n, n) diagonal blocks; L: (K − 1, n, n) blocks below the diagonal (block (k+1, k));
     B: (K, n, m) border; C: (m, m). Returns a ``BlockCholesky``.
     """
-    Lc, W = _factor_tridiagonal(D, L)
+    D, L, B, C = (jnp.asarray(a) for a in (D, L, B, C))
+    Lc, W, factored = _factor_tridiagonal(D, L)
     X = _solve_tridiagonal(Lc, W, B)  # A⁻¹ B
     schur = jnp.linalg.cholesky(C - jnp.einsum("kna,knb->ab", B, X))
-    return BlockCholesky(diagonal=Lc, subdiagonal=W, border_solution=X, schur=schur, border=B)
+    return BlockCholesky(diagonal=Lc, subdiagonal=W, border_solution=X, schur=schur, border=B,
+                         factored=factored)
 
 
 def solve(chol, r, s):
     """Solve with a ``BlockCholesky``: r (K, n), s (m,) → (x (K, n), y (m,))."""
-    x0 = _solve_tridiagonal(chol.diagonal, chol.subdiagonal, r[..., None])[..., 0]
+    x0 = _solve_tridiagonal(chol.diagonal, chol.subdiagonal, jnp.asarray(r)[..., None])[..., 0]
     rhs = s - jnp.einsum("knm,kn->m", chol.border, x0)
     y = jax.scipy.linalg.cho_solve((chol.schur, True), rhs)
     return x0 - jnp.einsum("knm,m->kn", chol.border_solution, y), y
