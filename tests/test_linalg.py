@@ -24,13 +24,13 @@ def _random_system(K, n, m, seed):
     F[: K * n, K * n :] = 0
     A = F @ F.T
     D = np.stack([A[k * n : (k + 1) * n, k * n : (k + 1) * n] for k in range(K)])
-    L = np.stack([A[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n] for k in range(K - 1)])
+    L = np.stack([A[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n] for k in range(K - 1)]) if K > 1 else np.zeros((0, n, n))
     B = np.stack([A[k * n : (k + 1) * n, K * n :] for k in range(K)])
     C = A[K * n :, K * n :]
     return A, D, L, B, C
 
 
-@pytest.mark.parametrize("K, n, m", [(2, 3, 1), (7, 5, 2), (20, 12, 1), (5, 4, 0)])
+@pytest.mark.parametrize("K, n, m", [(1, 3, 1), (2, 3, 1), (7, 5, 2), (20, 12, 1), (5, 4, 0)])
 def test_solve_matches_dense(K, n, m):
     A, D, L, B, C = _random_system(K, n, m, seed=K * 100 + n)
     rng = np.random.default_rng(0)

@@ -24,7 +24,8 @@ from jax.scipy.linalg import solve_triangular
 class BlockCholesky:
     """A = 𝓛 𝓛ᵀ with 𝓛 block lower-bidiagonal: diagonal (K, n, n), sub-diagonal (K − 1, n, n);
     plus the border's Schur complement factor (m, m), A⁻¹B (K, n, m), and the number of
-    diagonal blocks factored (K unless a block was not positive definite: the rest are 0)."""
+    diagonal blocks factored (K unless a block was not positive definite: the blocks after
+    that one are 0)."""
 
     diagonal: jax.Array
     subdiagonal: jax.Array
@@ -64,6 +65,8 @@ def _factor_tridiagonal(D, L):
     # only the blocks up to it.
     first = jnp.linalg.cholesky(D[0])
     ok = jnp.all(jnp.isfinite(first))
+    if K == 1:  # no coupling blocks to index
+        return first[None], L, ok.astype(jnp.int32)
     carry = (ok.astype(jnp.int32), jnp.zeros_like(D).at[0].set(first), jnp.zeros_like(L), ok)
     factored, Lc, W, _ = jax.lax.while_loop(running, step, carry)
     return Lc, W, factored
@@ -77,6 +80,8 @@ def _solve_tridiagonal(Lc, W, R):
         return y.at[k].set(solve_triangular(Lc[k], R[k] - W[k - 1] @ y[k - 1], lower=True))
 
     y = jnp.zeros_like(R).at[0].set(solve_triangular(Lc[0], R[0], lower=True))
+    if K == 1:  # no coupling blocks to index
+        return solve_triangular(Lc[0], y[0], lower=True, trans="T")[None]
     y = jax.lax.fori_loop(1, K, forward, y)
 
     def backward(i, x):
