@@ -24,7 +24,9 @@ def _random_system(K, n, m, seed):
     F[: K * n, K * n :] = 0
     A = F @ F.T
     D = np.stack([A[k * n : (k + 1) * n, k * n : (k + 1) * n] for k in range(K)])
-    L = np.stack([A[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n] for k in range(K - 1)]) if K > 1 else np.zeros((0, n, n))
+    L = np.zeros((K - 1, n, n))
+    for k in range(K - 1):
+        L[k] = A[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n]
     B = np.stack([A[k * n : (k + 1) * n, K * n :] for k in range(K)])
     C = A[K * n :, K * n :]
     return A, D, L, B, C
