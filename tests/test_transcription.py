@@ -182,11 +182,29 @@ def test_constraint_curvature_matches_jax_hessian(integration):
     groups = ("path_equality", "transition_equality", "path_inequality", "transition_inequality")
     y = [jax.random.normal(k, getattr(r, g).shape) for k, g in zip(jax.random.split(key, 4), groups)]
     plain = dataclasses.replace(
-        nlp, functions=dataclasses.replace(nlp.functions, path_hessian=None, transition_hessian=None))
+        nlp, functions=dataclasses.replace(nlp.functions, path_hessian=None, transition_curvature_columns=None))
     fast = jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y)
     reference = jax.jit(stagewise.constraint_curvature)(plain, Z, theta, *y)
     for ours, expected in zip(fast, reference):
         assert np.abs(np.asarray(ours) - np.asarray(expected)).max() <= 1e-10 * max(1.0, np.abs(expected).max())
+
+    # And against the dense Hessian of Σ y·c over all of (Z, θ), cut into blocks.
+    K, nz = Z.shape
+
+    def weighted(w):
+        residuals = stagewise.residuals(nlp, w[: K * nz].reshape(K, nz), w[K * nz :])
+        return sum(jnp.sum(getattr(residuals, g) * yi) for g, yi in zip(groups, y))
+
+    dense = np.asarray(jax.jit(jax.hessian(weighted))(jnp.concatenate([Z.reshape(-1), theta])))
+    D, L, B, C = (np.asarray(x) for x in fast)
+    scale = max(1.0, np.abs(dense).max())
+    for k in range(K):
+        now = slice(k * nz, (k + 1) * nz)
+        assert np.abs(D[k] - dense[now, now]).max() <= 1e-10 * scale
+        assert np.abs(B[k] - dense[now, K * nz :]).max() <= 1e-10 * scale
+        if k:
+            assert np.abs(L[k - 1] - dense[now, (k - 1) * nz : k * nz]).max() <= 1e-10 * scale
+    assert np.abs(C - dense[K * nz :, K * nz :]).max() <= 1e-10 * scale
 
 
 @pytest.mark.parametrize("integration", ["backward_euler", "trapezoidal"])

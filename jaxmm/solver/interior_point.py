@@ -384,6 +384,7 @@ def advance(nlp, state, options=Options(), until=None):
     fixed_t = (~bounds.free[1]).astype(dtype)
     fz, ft = 1 - fixed_z, 1 - fixed_t
     supports = stagewise.row_supports(nlp)
+    coupled = rows.coupled_columns(supports)
 
     def body(state):
         P, y, zl, zu = state.P, state.y, state.zl, state.zu
@@ -464,7 +465,7 @@ def advance(nlp, state, options=Options(), until=None):
         # ×8. (Starting from that third directly saves a factorisation but keeps the steps
         # damped: take-off N = 70 took 636 iterations instead of 435.)
         def attempt(delta):
-            chol = linalg.factor(*regularised(condensed, delta))
+            chol = linalg.factor(*regularised(condensed, delta), coupled=coupled)
             return chol, chol.ok
 
         chol0, ok0 = attempt(state.forced)

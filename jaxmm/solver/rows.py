@@ -126,6 +126,22 @@ def _sparse_gram(rows, w, K):
     return D, L, B
 
 
+def coupled_columns(supports):
+    """The columns of z_k in which the sub-diagonal blocks L (∂²/∂z_{k+1}∂z_k of any Newton
+    matrix built from the constraints) can be non-zero: the union of the transition groups'
+    ``now`` columns, as a sorted tuple (``linalg.factor``'s ``coupled``); None, meaning every
+    column, when a transition group declares no supports. supports: {group: tuple of
+    ``RowSupport``}."""
+    groups = ("transition_equality", "transition_inequality")
+    if any(supports.get(g) is None for g in groups):
+        return None
+    columns = set()
+    for g in groups:
+        for run in supports[g]:
+            columns.update(int(c) for c in run.now)
+    return tuple(sorted(columns))
+
+
 def add(*blocks):
     """Sum of (D, L, B, C) tuples."""
     return tuple(sum(parts) for parts in zip(*blocks))

@@ -14,10 +14,12 @@ with ``jax.jacfwd`` vmapped over the knots.
 """
 
 import dataclasses
+import functools
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,8 +33,10 @@ class StagewiseFunctions:
     of y_e·e + y_g·g w.r.t. (z, θ), for NLPs that know a faster way than ``jax.hessian``;
     knot_cost_hessian (optional): (args, z, θ, d) → (∂²φ/∂z² (nz, nz), ∂²φ/∂z∂θ (nz, ng),
     ∂²φ/∂θ² (ng, ng)), likewise;
-    transition_hessian (optional): (args, z, z_next, θ, y_t (mt,), y_h (mh,)) → (2 nz + ng,
-    2 nz + ng), the Hessian of y_t·t + y_h·h w.r.t. (z, z_next, θ), likewise;
+    transition_curvature_columns (optional): (args) → the columns of (z_k, z_{k+1}) (a tuple of
+    ints in 0..2 nz − 1, static: from args' static fields) in which the transition functions
+    are nonlinear for a fixed θ; they must be linear in every other entry. The solver then
+    takes their Hessian over those columns alone (and θ's rows by forward-over-reverse);
     row_supports (optional): (args) → {group: tuple of ``RowSupport``}, for each of the four
     constraint groups ("path_equality", …) a partition of its rows into consecutive runs with the
     columns of z_k (and z_{k+1}) they can depend on: the Jacobians' sparsity pattern, static
@@ -48,7 +52,7 @@ class StagewiseFunctions:
     transition_inequality: Callable
     path_hessian: Callable | None = None
     knot_cost_hessian: Callable | None = None
-    transition_hessian: Callable | None = None
+    transition_curvature_columns: Callable | None = None
     row_supports: Callable | None = None
 
 
@@ -221,28 +225,40 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
 
         return jax.hessian(weighted)(jnp.concatenate([z, theta]))
 
-    def transition_hessian(args, z, z_next, theta, y_t, y_h):
-        def weighted(w):
-            now, nxt, th = w[:nz], w[nz : 2 * nz], w[2 * nz :]
-            return jnp.sum(f.transition_equality(args, now, nxt, th) * y_t) + jnp.sum(
-                f.transition_inequality(args, now, nxt, th) * y_h
-            )
-
-        return jax.hessian(weighted)(jnp.concatenate([z, z_next, theta]))
-
     hessian = path_hessian if f.path_hessian is None else f.path_hessian
     H = jax.vmap(hessian, in_axes=(None, 0, None, 0, 0))(a, Z, theta, path_equality, path_inequality)
     D, B, C = H[:, :nz, :nz], H[:, :nz, nz:], jnp.sum(H[:, nz:, nz:], axis=0)
-    hessian = transition_hessian if f.transition_hessian is None else f.transition_hessian
-    H = jax.vmap(hessian, in_axes=(None, 0, 0, None, 0, 0))(a, Z[:-1], Z[1:], theta, transition_equality,
-                                                          transition_inequality)
-    # Each interval's blocks padded to the knots and added in one pass: two scatter-adds per
-    # array took 20 ms against 7 ms for 71 iRonCub knots on a CPU.
-    D = D + _before(H[:, :nz, :nz]) + _after(H[:, nz : 2 * nz, nz : 2 * nz])
-    L = H[:, nz : 2 * nz, :nz]
-    B = B + _before(H[:, :nz, 2 * nz :]) + _after(H[:, nz : 2 * nz, 2 * nz :])
-    C = C + jnp.sum(H[:, 2 * nz :, 2 * nz :], axis=0)
-    return D, L, B, C
+    columns = (np.arange(2 * nz) if f.transition_curvature_columns is None
+               else np.asarray(f.transition_curvature_columns(a), dtype=int))
+    interval = functools.partial(_transition_curvature, f, columns=columns)
+    inner, mixed, corner = jax.vmap(interval, in_axes=(None, 0, 0, None, 0, 0))(
+        a, Z[:-1], Z[1:], theta, transition_equality, transition_inequality)
+    # Only the nonlinear columns' entries are scattered: the dense (2 nz + ng)² Hessian of
+    # every interval cost more to fill and slice than to compute.
+    now, following = columns < nz, columns >= nz
+    cn, cf = columns[now], columns[following] - nz
+    inner_now = inner[:, now][:, :, now]
+    inner_next = inner[:, following][:, :, following]
+    D = D.at[:-1, cn[:, None], cn[None, :]].add(inner_now).at[1:, cf[:, None], cf[None, :]].add(inner_next)
+    L = jnp.zeros((K - 1, nz, nz), Z.dtype).at[:, cf[:, None], cn[None, :]].set(inner[:, following][:, :, now])
+    B = B + _before(mixed[:, :nz]) + _after(mixed[:, nz:])
+    return D, L, B, C + jnp.sum(corner, axis=0)
+
+
+def _transition_curvature(functions, args, z, z_next, theta, y_t, y_h, columns):
+    """One interval's Σ y ∇²(t, h): the Hessian over ``columns`` of (z, z_next) (c, c), the
+    mixed block ∂²/∂(z, z_next)∂θ (2 nz, ng) and ∂²/∂θ² (ng, ng)."""
+    nz = z.shape[0]
+
+    def weighted(w, th):
+        now, nxt = w[:nz], w[nz:]
+        return jnp.dot(y_t, functions.transition_equality(args, now, nxt, th)) + jnp.dot(
+            y_h, functions.transition_inequality(args, now, nxt, th))
+
+    w0 = jnp.concatenate([z, z_next])
+    inner = jax.hessian(lambda v: weighted(w0.at[columns].set(v), theta))(w0[columns])
+    mixed, corner = jax.jacfwd(lambda th: jax.grad(weighted, argnums=(0, 1))(w0, th))(theta)
+    return inner, mixed, corner
 
 
 def _before(blocks):
