@@ -47,7 +47,10 @@ def test_block_jacobians_equal_dense_autodiff(name, options):
     Z, theta = _random_point(task, seed=1)
     K, nz = Z.shape
     ng = theta.shape[0]
-    B = jax.jit(stagewise.blocks)(nlp, Z, theta)
+    B = jax.jit(stagewise.blocks)(nlp, Z, theta)  # the path rows through ``path_constraints``
+    both = jax.vmap(nlp.functions.path_constraints, in_axes=(None, 0, None))(nlp.args, Z, theta)
+    separate = stagewise.residuals(nlp, Z, theta)
+    assert np.array_equal(both[0], separate.path_equality) and np.array_equal(both[1], separate.path_inequality)
 
     def flat(w, group):
         return getattr(stagewise.residuals(nlp, w[: K * nz].reshape(K, nz), w[K * nz :]), group).reshape(-1)

@@ -65,6 +65,15 @@ def _path_inequality(task, z, theta):
     return _concat(constraints.path_inequalities(task, _knot(task, z), theta[0]), constraints.PATH_INEQUALITIES)
 
 
+def _path_constraints(task, z, theta):
+    """Both path functions from one evaluation of the kinematics (and so, differentiated, one
+    kinematics Jacobian)."""
+    knot = _knot(task, z)
+    kinematics = constraints.knot_kinematics(task, knot.configuration)
+    return (_concat(constraints.path_equalities(task, knot, theta[0], kinematics), constraints.PATH_EQUALITIES),
+            _concat(constraints.path_inequalities(task, knot, theta[0], kinematics), constraints.PATH_INEQUALITIES))
+
+
 def _path_hessian(task, z, theta, y_equality, y_inequality):
     """Hessian of y_e·e + y_g·g w.r.t. (z̃, θ), exact, by the chain rule through the kinematics κ(q):
     ``jax.hessian`` of the constraints with κ linearised at q (cheap algebra), plus Σ w ∇²κ with
@@ -185,6 +194,7 @@ FUNCTIONS = StagewiseFunctions(
     path_hessian=_path_hessian,
     transition_curvature_columns=_transition_curvature_columns,
     row_supports=_row_supports,
+    path_constraints=_path_constraints,
 )
 
 

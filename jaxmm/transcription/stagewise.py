@@ -37,6 +37,8 @@ class StagewiseFunctions:
     ints in 0..2 nz − 1, static: from args' static fields) in which the transition functions
     are nonlinear for a fixed θ; they must be linear in every other entry. The solver then
     takes their Hessian over those columns alone (and θ's rows by forward-over-reverse);
+    path_constraints (optional): (args, z, θ) → (e, g), both path functions at once, for NLPs
+    whose two share work (``blocks`` differentiates them in one pass);
     row_supports (optional): (args) → {group: tuple of ``RowSupport``}, for each of the four
     constraint groups ("path_equality", …) a partition of its rows into consecutive runs with the
     columns of z_k (and z_{k+1}) they can depend on: the Jacobians' sparsity pattern, static
@@ -54,6 +56,7 @@ class StagewiseFunctions:
     knot_cost_hessian: Callable | None = None
     transition_curvature_columns: Callable | None = None
     row_supports: Callable | None = None
+    path_constraints: Callable | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -160,12 +163,17 @@ def residuals(nlp, Z, theta):
 def blocks(nlp, Z, theta):
     """Block Jacobians of every constraint and the cost's gradient and Hessian blocks.
 
-    Per-knot ``jax.jacfwd`` vmapped over the knots: no dense Jacobian is ever formed.
+    Per-knot ``jax.jacfwd`` vmapped over the knots: no dense Jacobian is ever formed. The
+    path equalities and inequalities are differentiated in one pass (through
+    ``StagewiseFunctions.path_constraints`` when given), so what they share can be computed
+    once (on a robot, the kinematics and their Jacobian).
     """
     f, a = nlp.functions, nlp.args
 
-    def path(fn):
-        return jax.vmap(jax.jacfwd(fn, argnums=(1, 2)), in_axes=(None, 0, None))(a, Z, theta)
+    def path_constraints(args, z, theta):
+        if f.path_constraints is not None:
+            return f.path_constraints(args, z, theta)
+        return f.path_equality(args, z, theta), f.path_inequality(args, z, theta)
 
     def transition(fn):
         return jax.vmap(jax.jacfwd(fn, argnums=(1, 2, 3)), in_axes=(None, 0, 0, None))(a, Z[:-1], Z[1:], theta)
@@ -179,9 +187,9 @@ def blocks(nlp, Z, theta):
         cost_zz, cost_ztheta, cost_thetatheta = jax.vmap(f.knot_cost_hessian, in_axes=(None, 0, None, 0))(
             a, Z, theta, nlp.knot_data)
     global_grad = jax.grad(f.global_cost, argnums=1)
-    pe_z, pe_theta = path(f.path_equality)
+    (pe_z, pe_theta), (pi_z, pi_theta) = jax.vmap(jax.jacfwd(path_constraints, argnums=(1, 2)),
+                                                  in_axes=(None, 0, None))(a, Z, theta)
     te_z, te_znext, te_theta = transition(f.transition_equality)
-    pi_z, pi_theta = path(f.path_inequality)
     ti_z, ti_znext, ti_theta = transition(f.transition_inequality)
     return Blocks(
         cost_z=cost_z,
