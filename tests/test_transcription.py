@@ -210,6 +210,20 @@ def test_constraint_curvature_matches_jax_hessian(integration):
     assert np.abs(C - dense[K * nz :, K * nz :]).max() <= 1e-10 * scale
 
 
+@pytest.mark.parametrize("columns", [(0, 0), (-1,), (10_000,)])
+def test_bad_transition_curvature_columns_are_refused(columns):
+    task = scenario("take_off", knots=2)
+    nlp = transcription.stagewise_nlp(task)
+    bad = dataclasses.replace(nlp, functions=dataclasses.replace(
+        nlp.functions, transition_curvature_columns=lambda args: columns))
+    Z, theta = transcription.to_variables(task, initial_guess(task))
+    r = stagewise.residuals(nlp, Z, theta)
+    y = [jnp.ones_like(getattr(r, g)) for g in ("path_equality", "transition_equality", "path_inequality",
+                                               "transition_inequality")]
+    with pytest.raises(ValueError, match="transition_curvature_columns must be distinct columns"):
+        stagewise.constraint_curvature(bad, Z, theta, *y)
+
+
 @pytest.mark.parametrize("integration", ["backward_euler", "trapezoidal"])
 def test_row_supports_cover_every_nonzero_of_the_jacobians(integration):
     """The declared sparsity (``constraints.FAMILY_FIELDS``) the solver's Gram products rely on:

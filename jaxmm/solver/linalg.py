@@ -21,8 +21,8 @@ product, instead of n × n ones).
 import dataclasses
 
 import jax
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 from jax.scipy.linalg import solve_triangular
 
 
@@ -50,13 +50,12 @@ class BlockCholesky:
         return (self.factored == self.diagonal.shape[-3]) & jnp.all(jnp.isfinite(self.schur))
 
 
-def _factor_tridiagonal(D, L, order):
-    """Block Cholesky of the tridiagonal part in each knot's variable order ``order`` (static,
-    (n,)), L's columns non-zero only in the last s (``coupled_order``): returns (Lc (K, n, n),
-    W (K − 1, n, s), the number of diagonal blocks factored before the first that is not
-    positive definite), in that order."""
+def _factor_tridiagonal(D, L, order, s):
+    """Block Cholesky of the tridiagonal part with each knot's variables in the order ``order``
+    (static (n,) indices; None: as given), L's columns non-zero only in the last s of that
+    order (``coupled_order``): returns (Lc (K, n, n), W (K − 1, n, s), the number of diagonal
+    blocks factored before the first that is not positive definite), in that order."""
     K, n = D.shape[:2]
-    order, s = order
     if order is None:
         block, coupling = (lambda k: D[k]), (lambda k: L[k])
     else:
@@ -148,7 +147,7 @@ def factor(D, L, B, C, coupled=None):
     p = None if coupled is None else np.asarray(order)
     if p is not None:
         B = _take(B, p, 1)
-    Lc, W, factored = _factor_tridiagonal(D, L, (p, s))
+    Lc, W, factored = _factor_tridiagonal(D, L, p, s)
     X = _solve_tridiagonal(Lc, W, B)  # A⁻¹ B
     schur = jnp.linalg.cholesky(C - jnp.einsum("kna,knb->ab", B, X))
     return BlockCholesky(diagonal=Lc, subdiagonal=W, border_solution=X, schur=schur, border=B,

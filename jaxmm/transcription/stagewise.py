@@ -224,6 +224,11 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
     """
     f, a = nlp.functions, nlp.args
     K, nz = Z.shape
+    columns = (np.arange(2 * nz) if f.transition_curvature_columns is None
+               else np.asarray(f.transition_curvature_columns(a), dtype=int).reshape(-1))
+    if columns.size != np.unique(columns).size or (columns.size and (columns.min() < 0 or columns.max() >= 2 * nz)):
+        raise ValueError(f"transition_curvature_columns must be distinct columns in 0..{2 * nz - 1}, "
+                         f"got {columns.tolist()}")
 
     def path_hessian(args, z, theta, y_e, y_g):
         def weighted(w):
@@ -236,8 +241,6 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
     hessian = path_hessian if f.path_hessian is None else f.path_hessian
     H = jax.vmap(hessian, in_axes=(None, 0, None, 0, 0))(a, Z, theta, path_equality, path_inequality)
     D, B, C = H[:, :nz, :nz], H[:, :nz, nz:], jnp.sum(H[:, nz:, nz:], axis=0)
-    columns = (np.arange(2 * nz) if f.transition_curvature_columns is None
-               else np.asarray(f.transition_curvature_columns(a), dtype=int))
     interval = functools.partial(_transition_curvature, f, columns=columns)
     inner, mixed, corner = jax.vmap(interval, in_axes=(None, 0, 0, None, 0, 0))(
         a, Z[:-1], Z[1:], theta, transition_equality, transition_inequality)
