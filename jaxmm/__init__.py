@@ -8,7 +8,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from jaxmm import so3  # noqa: E402
+from jaxmm import compilation, so3  # noqa: E402
 from jaxmm.centroidal import (  # noqa: E402
     centroidal_momentum,
     centroidal_momentum_matrix,
@@ -42,6 +42,7 @@ __all__ = [
     "centroidal_momentum_matrix",
     "com_jacobian",
     "com_position",
+    "compilation",
     "configuration_derivative",
     "frame_jacobian",
     "frame_pose",

@@ -26,16 +26,16 @@ the solve did not converge or the KKT system could not be solved accurately (see
 """
 
 import dataclasses
-import functools
 
 import jax
 
+from jaxmm import compilation
 from jaxmm.optimise import DEFAULT_OPTIONS, prepare, task_solution
 from jaxmm.solver import sensitivity
 from jaxmm.transcription import nlp as transcription
 
 
-@functools.partial(jax.jit, static_argnames=("options", "settings"))
+@compilation.jit(static_argnames=("options", "settings"))
 def _solve(task, guess, options, settings, multipliers, bound_multipliers):
     problem = transcription.stagewise_nlp(task)
     # The optimum does not depend on the starting point: no derivative flows into the guess.
@@ -61,7 +61,7 @@ def solve_task_differentiable(task, guess=None, options=DEFAULT_OPTIONS, warm_st
     return _solve(task, guess, options, settings, multipliers, bound_multipliers)
 
 
-@jax.jit
+@compilation.jit
 def _gradient(task, solution, cotangent):
     problem, pull_task = jax.vjp(transcription.stagewise_nlp, task)
     nlp_bar, diagnostics = sensitivity.vjp(problem, solution, *cotangent)

@@ -7,11 +7,11 @@ that structure, whatever its numbers (targets, weights, bounds).
 """
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
 
+from jaxmm import compilation
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import stopping
 from jaxmm.tasks import initial_guess
@@ -67,18 +67,18 @@ def solve_program(task, guess, options, multipliers=None, bound_multipliers=None
 # The solve in three programs: start, advance to an iteration count, finish. Run one after the
 # other (or in slices, by stopping.run), every solve of a structure shares the one heavy program,
 # advance, whatever its start (cold, warm, another scaling), its time budget or its interrupts.
-@functools.partial(jax.jit, static_argnames="options")
+@compilation.jit(static_argnames="options")
 def _start(task, guess, options, multipliers, bound_multipliers, scaling=None):
     Z0, theta0 = transcription.to_variables(task, guess)
     return ip.start(transcription.stagewise_nlp(task), Z0, theta0, options, multipliers, bound_multipliers, scaling)
 
 
-@functools.partial(jax.jit, static_argnames="options")
+@compilation.jit(static_argnames="options")
 def _advance(task, state, options, until):
     return ip.advance(transcription.stagewise_nlp(task), state, options, until)
 
 
-@jax.jit
+@compilation.jit
 def _finish(task, state, stopped):
     nlp = transcription.stagewise_nlp(task)
     return task_solution(task, nlp, ip.finish(nlp, state, stopped))
