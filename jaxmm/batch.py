@@ -25,13 +25,14 @@ one compilation.
 """
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm import analysis, compilation, optimise
+from jaxmm import analysis, optimise
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import stopping
 from jaxmm.tasks import initial_guess
@@ -198,24 +199,24 @@ def _instances(options, vectorised):
     return _over(lambda task, guess: optimise.solve_program(task, guess, options), vectorised)
 
 
-@compilation.jit(static_argnames=("options", "vectorised"))
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
 def _solve_batch(tasks, guesses, options, vectorised=True):
     """``optimise.solve_program`` over a batched task and its guesses (see ``_instances``)."""
     return _instances(options, vectorised)(tasks, guesses)
 
 
 # The batch solve in slices, for stopping.run (a time budget, Ctrl-C).
-@compilation.jit(static_argnames=("options", "vectorised"))
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
 def _start_batch(tasks, guesses, options, vectorised):
     return _over(lambda task, guess: optimise._start(task, guess, options, None, None), vectorised)(tasks, guesses)
 
 
-@compilation.jit(static_argnames=("options", "vectorised"))
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
 def _advance_batch(tasks, states, options, vectorised, until):
     return _over(lambda task, state: optimise._advance(task, state, options, until), vectorised)(tasks, states)
 
 
-@compilation.jit(static_argnames="vectorised")
+@functools.partial(jax.jit, static_argnames="vectorised")
 def _finish_batch(tasks, states, vectorised, stopped):
     return _over(lambda task, state: optimise._finish(task, state, stopped), vectorised)(tasks, states)
 
@@ -230,7 +231,7 @@ def batch_mesh(devices=None):
     return jax.sharding.Mesh(np.asarray(devices), ("batch",))
 
 
-@compilation.jit(static_argnames=("options", "mesh", "vectorised"))
+@functools.partial(jax.jit, static_argnames=("options", "mesh", "vectorised"))
 def _solve_sharded(tasks, guesses, options, mesh, vectorised):
     """``_solve_batch`` with the instances split over the devices of ``mesh``: each device
     solves its own B / D instances (``jax.shard_map``), its loops stopping when its own
