@@ -126,7 +126,8 @@ def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, probl
     with pytest.raises(ValueError, match=r"joint_positions has non-finite entries .* in instances \[1, 2\]"):
         batch.solve_batch(task, [good, guess, guess])
     stacked = batch.stack_trajectories([guess, guess, guess])
-    result = batch._solve_batch(batch.broadcast_task(task, 3), stacked, optimise.DEFAULT_OPTIONS)
+    # called as solve_batch calls it: jit keys a static argument left at its default apart from one passed
+    result = batch._solve_batch(batch.broadcast_task(task, 3), stacked, optimise.DEFAULT_OPTIONS, True)
     assert batch._solve_batch._cache_size() == compiled
     assert [ip.Status(int(s)) for s in result.solution.status] == [ip.Status.NAN] * 3
     np.testing.assert_array_equal(np.asarray(result.solution.iterations), 1)
