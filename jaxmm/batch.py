@@ -96,8 +96,11 @@ def _stack_leaves(*leaves):
 
 
 def broadcast_task(task, size):
-    """``task`` repeated ``size`` times as a batched ``Task`` (every array leaf (size, ...))."""
-    return jax.tree.map(lambda leaf: jnp.broadcast_to(leaf, (size,) + jnp.shape(leaf)), task)
+    """``task`` repeated ``size`` times as a batched ``Task`` (every array leaf (size, ...)), with
+    the leaf types of ``stack_tasks`` (no weak types: a weakly typed leaf would compile a second
+    batch solve)."""
+    return jax.tree.map(lambda leaf: jnp.broadcast_to(jnp.asarray(leaf, dtype=jnp.result_type(leaf)),
+                                                      (size,) + jnp.shape(leaf)), task)
 
 
 def stack_tasks(tasks):

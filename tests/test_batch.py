@@ -150,6 +150,14 @@ def test_a_time_budget_stops_the_batch_on_its_path(problems, solved, vectorised)
     assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in jax.tree.leaves(stopped.trajectory))
 
 
+def test_a_broadcast_task_has_the_leaf_types_of_stacked_tasks(task):
+    """So that solve_batch (one task, broadcast) and solve_batch_tasks share one compiled solve:
+    a weakly typed leaf (a float given in Python) would make jit compile another."""
+    other = tasks.scenario("take_off", **{**REDUCED_TAKE_OFF, "final_com": (0.0, 0.0, 0.78)})
+    assert jax.tree.map(jax.typeof, batch.broadcast_task(task, 2)) == jax.tree.map(
+        jax.typeof, batch.stack_tasks([task, other]))
+
+
 def test_the_default_guesses_of_a_batch_of_tasks_are_the_published_ones(task):
     other = tasks.scenario("take_off", **{**REDUCED_TAKE_OFF, "final_com": (0.0, 0.0, 0.78)})
     published = batch.published_guesses(batch.stack_tasks([task, other]))
