@@ -249,3 +249,18 @@ def test_history_counts_the_block_solves_of_each_iteration():
     assert solves[-1] == 0
     assert np.all((solves[:-1] >= 1) & (solves[:-1] <= (1 + ip.REFINEMENT_STEPS) * (1 + ip.SOC_STEPS)))
     assert np.all(solves == np.round(solves))
+
+
+def test_a_filter_entry_does_not_reject_the_point_it_was_made_from():
+    """The filter's comparisons allow 10 ε of the entry (IPOPT's): at θ0 = 3.6e-6, φ0 = 546.4
+    (walk-to-fly, iteration 2860) the entry (1 − 1e-5) θ0, φ0 − 1e-8 θ0 is φ0 in floating point,
+    and an exact comparison rejected the point itself and every step near it: the solve stalled."""
+    theta0, phi0 = 3.552522411638449e-06, 546.4147205020536
+    entries_theta = jnp.array([1e4, (1 - 1e-5) * theta0, jnp.inf])
+    entries_phi = jnp.array([-jnp.inf, phi0 - 1e-8 * theta0, jnp.inf])
+    assert entries_phi[1] == phi0  # the margin is below φ0's rounding
+    assert not ip._in_filter(theta0, phi0, entries_theta, entries_phi)
+    assert ip._in_filter(2 * theta0, phi0 + 1e-9, entries_theta, entries_phi)  # worse in both
+    assert not ip._in_filter(2 * theta0, phi0 - 1e-9, entries_theta, entries_phi)  # better in φ
+    assert not ip._in_filter(0.5 * theta0, phi0 + 1.0, entries_theta, entries_phi)  # better in θ
+    assert ip._in_filter(2e4, -1e30, entries_theta, entries_phi)  # beyond the envelope θ_max

@@ -79,7 +79,8 @@ class Options:
     problem is solved to barrier_tolerance_factor × μ; dual_regularisation: δ = 1/ρ of the
     equality rows; line_search_steps: backtracking halvings; max_gradient: scaling target;
     max_rejections: consecutive rejected steps before ``INFEASIBLE`` (violation above tolerance)
-    or ``STALLED``;
+    or ``STALLED``; max_filter_resets: how often, per barrier parameter, a step that only the
+    filter rejected empties the filter (IPOPT's filter reset heuristic);
     progress: called on the host after every iteration as progress(iteration, record) with
     record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
     """
@@ -96,6 +97,7 @@ class Options:
     line_search_steps: int = 30
     max_gradient: float = 100.0
     max_rejections: int = 15
+    max_filter_resets: int = 5
     bound_push: float = 1e-2
     progress: Callable | None = None
 
@@ -271,6 +273,7 @@ class State:
     filter_theta: jax.Array
     filter_phi: jax.Array
     filter_count: jax.Array
+    filter_resets: jax.Array  # filter resets since the barrier parameter last changed
     rejections: jax.Array
     iterations: jax.Array
     barrier_updates: jax.Array
@@ -322,6 +325,14 @@ def _frame(nlp, scaling):
     return active, _bounds(nlp, row_scale[2:]), evaluate
 
 
+def _in_filter(theta, phi, filter_theta, filter_phi):
+    """Whether (θ, φ) is rejected by the filter: worse than an entry in both, by more than 10 ε
+    of that entry (IPOPT's comparison), so that no entry rejects the point it was made from."""
+    rounding = 10 * jnp.finfo(filter_theta.dtype).eps
+    tolerance = rounding * jnp.abs(jnp.where(jnp.isfinite(filter_phi), filter_phi, 0.0))
+    return jnp.any((theta - filter_theta > rounding * filter_theta) & (phi - filter_phi > tolerance))
+
+
 def _infeasibility(c):
     return sum(jnp.sum(jnp.abs(v)) for v in c)
 
@@ -355,7 +366,7 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         regularisation=jnp.asarray(0.0, dtype), forced=jnp.asarray(0.0, dtype),
         filter_theta=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(1e4 * envelope),
         filter_phi=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(-jnp.inf),
-        filter_count=jnp.asarray(1), rejections=jnp.asarray(0), iterations=jnp.asarray(0),
+        filter_count=jnp.asarray(1), filter_resets=jnp.asarray(0), rejections=jnp.asarray(0), iterations=jnp.asarray(0),
         barrier_updates=jnp.asarray(0), status=jnp.asarray(int(Status.RUNNING)), violation=v0,
         stationarity=jnp.asarray(jnp.inf, dtype),
         history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
@@ -433,6 +444,7 @@ def advance(nlp, state, options=Options(), until=None):
         filter_theta = jnp.where(reset, jnp.full_like(state.filter_theta, jnp.inf).at[0].set(state.theta_max), state.filter_theta)
         filter_phi = jnp.where(reset, jnp.full_like(state.filter_phi, jnp.inf).at[0].set(-jnp.inf), state.filter_phi)
         filter_count = jnp.where(reset, 1, state.filter_count)
+        filter_resets = jnp.where(reset, 0, state.filter_resets)
         tau = jnp.maximum(0.99, 1.0 - mu)
 
         # Barrier Hessian Σ and barrier gradient per leaf.
@@ -561,51 +573,59 @@ def advance(nlp, state, options=Options(), until=None):
             return _infeasibility(ct), f + _barrier(Pt, bounds, mu), ct
 
         def acceptable(alpha, th, ph):
+            """(accepted, an Armijo step, rejected by the filter alone). Comparisons allow 10 ε of
+            the reference, as IPOPT's do: near convergence φ changes by less than its rounding,
+            and a filter entry must not block the very point it came from (a step that changed
+            nothing, accepted at α ≈ 4e-9 on walk-to-fly, left an entry equal to the point in φ,
+            and every later step from there was rejected)."""
             switching = (slope < 0) & (alpha * (-slope) ** 2.3 > theta0_**1.1) & (theta0_ <= state.theta_min)
-            armijo = ph <= phi0 + 1e-8 * alpha * slope
-            decrease = (th <= (1 - 1e-5) * theta0_) | (ph <= phi0 - 1e-8 * theta0_)
-            in_filter = jnp.any((th >= filter_theta) & (ph >= filter_phi))
-            ok = jnp.isfinite(th) & jnp.isfinite(ph) & ~in_filter & jnp.where(switching, armijo, decrease)
-            return ok, switching & armijo
+            armijo = ph - phi0 - 1e-8 * alpha * slope <= rounding * jnp.abs(phi0)
+            decrease = (th <= (1 - 1e-5) * theta0_) | (ph - phi0 + 1e-8 * theta0_ <= rounding * jnp.abs(phi0))
+            in_filter = _in_filter(th, ph, filter_theta, filter_phi)
+            sufficient = jnp.isfinite(th) & jnp.isfinite(ph) & jnp.where(switching, armijo, decrease)
+            return sufficient & ~in_filter, switching & armijo, sufficient & in_filter
 
+        rounding = 10 * jnp.finfo(dtype).eps
         th1, ph1, c1 = trial(alpha_max, dP)
-        ok1, f1 = acceptable(alpha_max, th1, ph1)
+        ok1, f1, blocked1 = acceptable(alpha_max, th1, ph1)
 
         # Second-order corrections (IPOPT): when the full step raises the infeasibility, re-solve
         # with the constraint residual of the trial point folded in, up to SOC_STEPS times while
         # each correction cuts the infeasibility by κ_soc = 0.99. Judged with the full step's α.
         def correcting(carry):
-            k, ok, _, th, th_old, _, _, _, _, _, _ = carry
+            k, ok, _, th, th_old, _, _, _, _, _, _, _ = carry
             return (~ok) & (k < SOC_STEPS) & ((k == 0) | (th <= 0.99 * th_old))
 
         def correct(carry):
-            k, _, _, th, _, c_soc, alpha_soc, c_trial, _, _, solves = carry
+            k, _, _, th, _, c_soc, alpha_soc, c_trial, _, _, solves, blocked = carry
             c_soc = _tmap(lambda a, b: alpha_soc * a + b, c_soc, c_trial)
             step, alpha_soc, alpha_z_soc, more = direction(c_soc)
             th_soc, ph_soc, c_trial = trial(alpha_soc, step[0])
-            ok, f_type = acceptable(alpha_max, th_soc, ph_soc)
-            return k + 1, ok, f_type, th_soc, th, c_soc, alpha_soc, c_trial, step, alpha_z_soc, solves + more
+            ok, f_type, by_filter = acceptable(alpha_max, th_soc, ph_soc)
+            return (k + 1, ok, f_type, th_soc, th, c_soc, alpha_soc, c_trial, step, alpha_z_soc, solves + more,
+                    blocked | by_filter)
 
         try_soc = (~ok1) & (th1 >= theta0_) & factored
-        _, soc_ok, soc_f, _, _, _, alpha_soc, _, soc_step, alpha_z_soc, solves = jax.lax.while_loop(
+        _, soc_ok, soc_f, _, _, _, alpha_soc, _, soc_step, alpha_z_soc, solves, blocked = jax.lax.while_loop(
             correcting, correct,
             (jnp.where(try_soc, 0, SOC_STEPS), jnp.asarray(False), jnp.asarray(False), th1, th1, c, alpha_max, c1,
-             newton, alpha_z, solves),
+             newton, alpha_z, solves, blocked1),
         )
 
         def search(carry):
-            alpha, _, _, count = carry
+            alpha, _, _, count, blocked = carry
             alpha = alpha * 0.5
             th, ph, _ = trial(alpha, dP)
-            ok, f_type = acceptable(alpha, th, ph)
-            return alpha, ok, f_type, count + 1
+            ok, f_type, by_filter = acceptable(alpha, th, ph)
+            return alpha, ok, f_type, count + 1, blocked | by_filter
 
         def keep_searching(carry):
-            _, ok, _, count = carry
+            _, ok, _, count, _ = carry
             return (~ok) & (count < options.line_search_steps)
 
-        alpha, accepted, f_type, _ = jax.lax.while_loop(
-            keep_searching, search, (alpha_max, ok1 | soc_ok, f1, jnp.where(soc_ok, options.line_search_steps, 0))
+        alpha, accepted, f_type, _, blocked = jax.lax.while_loop(
+            keep_searching, search,
+            (alpha_max, ok1 | soc_ok, f1, jnp.where(soc_ok, options.line_search_steps, 0), blocked),
         )
         # The corrected step, when one was accepted, replaces the Newton step (duals included).
         dP, dy, dzl, dzu = jax.tree.map(lambda a, b: jnp.where(soc_ok, a, b), soc_step, newton)
@@ -630,7 +650,15 @@ def advance(nlp, state, options=Options(), until=None):
         filter_theta = jnp.where(grow_filter, filter_theta.at[slot].set((1 - 1e-5) * theta0_), filter_theta)
         filter_phi = jnp.where(grow_filter, filter_phi.at[slot].set(phi0 - 1e-8 * theta0_), filter_phi)
         filter_count = filter_count + grow_filter.astype(filter_count.dtype)
-        rejections = jnp.where(accepted, 0, state.rejections + 1)
+        # No step accepted, but one the filter alone turned down (the iterate has wandered into a
+        # pocket its own history fences in): empty the filter and retry the step (IPOPT's filter
+        # reset heuristic; IPOPT's restoration phase, which this solver has not, is the other way out).
+        unblock = factored & ~accepted & blocked & (filter_resets < options.max_filter_resets)
+        filter_theta = jnp.where(unblock, jnp.full_like(filter_theta, jnp.inf).at[0].set(state.theta_max), filter_theta)
+        filter_phi = jnp.where(unblock, jnp.full_like(filter_phi, jnp.inf).at[0].set(-jnp.inf), filter_phi)
+        filter_count = jnp.where(unblock, 1, filter_count)
+        filter_resets = filter_resets + unblock.astype(filter_resets.dtype)
+        rejections = jnp.where(accepted | unblock, 0, state.rejections + 1)
         v_new, _ = violation(nlp, P_new[0], P_new[1])
         record = jnp.stack([
             stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w, solves,
@@ -644,8 +672,8 @@ def advance(nlp, state, options=Options(), until=None):
             P=P_new, y=y_new, zl=zl_new, zu=zu_new, mu=mu,
             regularisation=jnp.where(delta_w > 0, delta_w, state.regularisation),
             # A rejected step is retried from a more heavily regularised (shorter, steeper) one.
-            forced=jnp.where(accepted, 0.0, jnp.maximum(delta_w * 100.0, 1e-4)),
-            filter_theta=filter_theta, filter_phi=filter_phi, filter_count=filter_count,
+            forced=jnp.where(accepted | unblock, 0.0, jnp.maximum(delta_w * 100.0, 1e-4)),
+            filter_theta=filter_theta, filter_phi=filter_phi, filter_count=filter_count, filter_resets=filter_resets,
             rejections=rejections, iterations=state.iterations + 1,
             barrier_updates=state.barrier_updates + updates, status=status, violation=v_new,
             stationarity=error0, history=state.history.at[state.iterations].set(record),
