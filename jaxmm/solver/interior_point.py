@@ -325,10 +325,15 @@ def _frame(nlp, scaling):
     return active, _bounds(nlp, row_scale[2:]), evaluate
 
 
+def _rounding(dtype):
+    """The relative allowance of the line search's comparisons: 10 ε, IPOPT's."""
+    return 10 * jnp.finfo(dtype).eps
+
+
 def _in_filter(theta, phi, filter_theta, filter_phi):
     """Whether (θ, φ) is rejected by the filter: worse than an entry in both, by more than 10 ε
     of that entry (IPOPT's comparison), so that no entry rejects the point it was made from."""
-    rounding = 10 * jnp.finfo(filter_theta.dtype).eps
+    rounding = _rounding(filter_theta.dtype)
     tolerance = rounding * jnp.abs(jnp.where(jnp.isfinite(filter_phi), filter_phi, 0.0))
     return jnp.any((theta - filter_theta > rounding * filter_theta) & (phi - filter_phi > tolerance))
 
@@ -585,7 +590,7 @@ def advance(nlp, state, options=Options(), until=None):
             sufficient = jnp.isfinite(th) & jnp.isfinite(ph) & jnp.where(switching, armijo, decrease)
             return sufficient & ~in_filter, switching & armijo, sufficient & in_filter
 
-        rounding = 10 * jnp.finfo(dtype).eps
+        rounding = _rounding(dtype)
         th1, ph1, c1 = trial(alpha_max, dP)
         ok1, f1, blocked1 = acceptable(alpha_max, th1, ph1)
 
