@@ -1,5 +1,7 @@
 """The interior-point solver on small stage-wise problems with known solutions."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -264,3 +266,32 @@ def test_a_filter_entry_does_not_reject_the_point_it_was_made_from():
     assert not ip._in_filter(2 * theta0, phi0 - 1e-9, entries_theta, entries_phi)  # better in φ
     assert not ip._in_filter(0.5 * theta0, phi0 + 1.0, entries_theta, entries_phi)  # better in θ
     assert ip._in_filter(2e4, -1e30, entries_theta, entries_phi)  # beyond the envelope θ_max
+
+
+advance = jax.jit(ip.advance, static_argnames="options")
+
+
+def test_a_filter_that_rejects_every_trial_leaves_the_soft_restoration_step():
+    """When the line search turns every trial down (here a filter entry at zero infeasibility,
+    and no filter resets), IPOPT's soft restoration takes the Newton step to its
+    fraction-to-boundary length if it lowers the primal–dual error, and puts the point it left
+    in the filter; without it the step is rejected. The solve then converges to the optimum."""
+    nlp = _integrator(CAPPED, energy_cap=0.01)
+    reference = solve(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    for soft_steps in (0, 10):
+        options = dataclasses.replace(OPTIONS, max_filter_resets=0, max_soft_steps=soft_steps)
+        state = advance(nlp, ip.start(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options), options, 2)
+        blocked = dataclasses.replace(state, filter_theta=state.filter_theta.at[state.filter_count].set(0.0),
+                                      filter_phi=state.filter_phi.at[state.filter_count].set(-jnp.inf),
+                                      filter_count=state.filter_count + 1)
+        after = advance(nlp, blocked, options, 3)
+        step = float(after.history[2, ip.HISTORY_COLUMNS.index("step_length")])
+        if soft_steps == 0:
+            assert step == 0.0 and int(after.rejections) == 1 and int(after.soft_steps) == 0
+            continue
+        assert step > 0.0 and int(after.rejections) == 0 and int(after.soft_steps) == 1
+        assert int(after.filter_count) == int(blocked.filter_count) + 1
+        assert float(after.filter_theta[blocked.filter_count]) > 0.0  # the point left, with IPOPT's margins
+        solution = ip.finish(nlp, advance(nlp, after, options, options.max_iterations))
+        assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
+        np.testing.assert_allclose(solution.Z, reference.Z, atol=1e-6)

@@ -19,7 +19,10 @@ exactly when its block Cholesky succeeds, which makes the factorisation the iner
 constraints' curvature at λ). Every linear system is bordered block-tridiagonal and solved by
 ``linalg`` (block Cholesky in a ``lax.while_loop``, Schur complement for the globals); each step is then
 refined towards the exact (δ = 0) KKT system, with the regularised factor as preconditioner.
-When the full step increases the infeasibility, IPOPT's second-order corrections are tried.
+When the full step increases the infeasibility, IPOPT's second-order corrections are tried;
+when the line search rejects every trial, IPOPT's soft restoration (a step that reduces the
+barrier problem's primal–dual error) and its filter reset; IPOPT's full restoration phase is
+not implemented.
 
 Rows and the cost are scaled at the starting point as IPOPT's gradient-based scaling does
 (no row or cost gradient above 100). The whole solve is one ``lax.while_loop``: it can be
@@ -80,7 +83,10 @@ class Options:
     equality rows; line_search_steps: backtracking halvings; max_gradient: scaling target;
     max_rejections: consecutive rejected steps before ``INFEASIBLE`` (violation above tolerance)
     or ``STALLED``; max_filter_resets: how often, per barrier parameter, a step that only the
-    filter rejected empties the filter (IPOPT's filter reset heuristic);
+    filter rejected empties the filter (IPOPT's filter reset heuristic); max_soft_steps: how many
+    consecutive iterations may take a soft-restoration step (IPOPT's: when the line search
+    rejects every trial, the step to the fraction-to-boundary length is taken if it cuts the
+    primal–dual error of the barrier problem by 0.9999; 0 turns it off);
     progress: called on the host after every iteration as progress(iteration, record) with
     record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
     """
@@ -98,6 +104,7 @@ class Options:
     max_gradient: float = 100.0
     max_rejections: int = 15
     max_filter_resets: int = 5
+    max_soft_steps: int = 10
     bound_push: float = 1e-2
     progress: Callable | None = None
 
@@ -274,6 +281,7 @@ class State:
     filter_phi: jax.Array
     filter_count: jax.Array
     filter_resets: jax.Array  # filter resets since the barrier parameter last changed
+    soft_steps: jax.Array  # consecutive soft-restoration steps (0: the line search accepted the last step)
     rejections: jax.Array
     iterations: jax.Array
     barrier_updates: jax.Array
@@ -371,7 +379,8 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         regularisation=jnp.asarray(0.0, dtype), forced=jnp.asarray(0.0, dtype),
         filter_theta=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(1e4 * envelope),
         filter_phi=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(-jnp.inf),
-        filter_count=jnp.asarray(1), filter_resets=jnp.asarray(0), rejections=jnp.asarray(0), iterations=jnp.asarray(0),
+        filter_count=jnp.asarray(1), filter_resets=jnp.asarray(0), soft_steps=jnp.asarray(0),
+        rejections=jnp.asarray(0), iterations=jnp.asarray(0),
         barrier_updates=jnp.asarray(0), status=jnp.asarray(int(Status.RUNNING)), violation=v0,
         stationarity=jnp.asarray(jnp.inf, dtype),
         history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
@@ -401,6 +410,20 @@ def advance(nlp, state, options=Options(), until=None):
     fz, ft = 1 - fixed_z, 1 - fixed_t
     supports = stagewise.row_supports(nlp)
     coupled = rows.coupled_columns(supports)
+
+    def primal_dual_error(P, y, zl, zu, mu):
+        """The barrier problem's primal–dual error at (P, y, zl, zu), IPOPT's soft-restoration
+        measure: mean |dual infeasibility| + mean |residual| + mean |distance · z − μ|."""
+
+        def lagrangian(P):
+            f, c, _ = evaluate(P)
+            return f + _dot(y, c), c
+
+        grad, c = jax.grad(lagrangian, has_aux=True)(P)
+        dual = _tmap(lambda g, a, b, f: jnp.where(f, g - a + b, 0.0), grad, zl, zu, bounds.free)
+        dl, du = _distances(P, bounds)
+        comp = _tmap(lambda a, z, m: jnp.where(m, a * z - mu, 0.0), dl + du, zl + zu, bounds.has_lower + bounds.has_upper)
+        return sum(sum(jnp.sum(jnp.abs(v)) for v in tree) / max(sum(v.size for v in tree), 1) for tree in (dual, c, comp))
 
     def body(state):
         P, y, zl, zu = state.P, state.y, state.zl, state.zu
@@ -450,6 +473,7 @@ def advance(nlp, state, options=Options(), until=None):
         filter_phi = jnp.where(reset, jnp.full_like(state.filter_phi, jnp.inf).at[0].set(-jnp.inf), state.filter_phi)
         filter_count = jnp.where(reset, 1, state.filter_count)
         filter_resets = jnp.where(reset, 0, state.filter_resets)
+        soft_steps = jnp.where(reset, 0, state.soft_steps)
         tau = jnp.maximum(0.99, 1.0 - mu)
 
         # Barrier Hessian Σ and barrier gradient per leaf.
@@ -638,19 +662,33 @@ def advance(nlp, state, options=Options(), until=None):
         alpha_z = jnp.where(soc_ok, alpha_z_soc, alpha_z)
         f_type = jnp.where(soc_ok, soc_f, f_type)
         accepted = accepted & factored
-        step = jnp.where(accepted, alpha, 0.0)
+        # Soft restoration (IPOPT): every trial turned down, the Newton step to its
+        # fraction-to-boundary length, in all variables at once, is taken if it reduces the
+        # barrier problem's primal–dual error. Near a solution with huge multipliers (walk-to-fly),
+        # Newton steps lower the infeasibility but raise φ, and the filter turns them all down.
+        alpha_soft = jnp.minimum(alpha_max, alpha_z)
+
+        def soft_trial(_):
+            trial = [_tmap(lambda v, d: v + alpha_soft * d, v, d) for v, d in zip((P, y, zl, zu), newton)]
+            return primal_dual_error(*trial, mu) <= 0.9999 * primal_dual_error(P, y, zl, zu, mu)
+
+        soft = jax.lax.cond(factored & ~accepted & (soft_steps < options.max_soft_steps), soft_trial,
+                            lambda _: jnp.asarray(False), None)
+        step = jnp.where(accepted, alpha, jnp.where(soft, alpha_soft, 0.0))
+        step_z = jnp.where(accepted, alpha_z, jnp.where(soft, alpha_soft, 0.0))
         P_new = _tmap(lambda p, d: p + step * d, P, dP)
         y_new = _tmap(lambda v, d: v + step * d, y, dy)
-        zl_new = _tmap(lambda v, d: v + jnp.where(accepted, alpha_z, 0.0) * d, zl, dzl)
-        zu_new = _tmap(lambda v, d: v + jnp.where(accepted, alpha_z, 0.0) * d, zu, dzu)
+        zl_new = _tmap(lambda v, d: v + step_z * d, zl, dzl)
+        zu_new = _tmap(lambda v, d: v + step_z * d, zu, dzu)
         # Keep the bound multipliers within a factor κ_Σ = 1e10 of μ / distance (IPOPT).
         dl_new, du_new = _distances(P_new, bounds)
         zl_new = _tmap(lambda z, a, m: jnp.where(m, jnp.clip(z, mu / (1e10 * a), 1e10 * mu / a), 0.0),
                        zl_new, dl_new, bounds.has_lower)
         zu_new = _tmap(lambda z, b, m: jnp.where(m, jnp.clip(z, mu / (1e10 * b), 1e10 * mu / b), 0.0),
                        zu_new, du_new, bounds.has_upper)
-        # The filter grows after every accepted step that was not an Armijo (f-type) step.
-        grow_filter = accepted & ~f_type
+        # The filter grows after every accepted step that was not an Armijo (f-type) step, and
+        # with the iterate a soft restoration starts from (IPOPT).
+        grow_filter = (accepted & ~f_type) | (soft & (soft_steps == 0))
         slot = filter_count % FILTER_SIZE
         filter_theta = jnp.where(grow_filter, filter_theta.at[slot].set((1 - 1e-5) * theta0_), filter_theta)
         filter_phi = jnp.where(grow_filter, filter_phi.at[slot].set(phi0 - 1e-8 * theta0_), filter_phi)
@@ -658,12 +696,13 @@ def advance(nlp, state, options=Options(), until=None):
         # No step accepted, but one the filter alone turned down (the iterate has wandered into a
         # pocket its own history fences in): empty the filter and retry the step (IPOPT's filter
         # reset heuristic; IPOPT's restoration phase, which this solver has not, is the other way out).
-        unblock = factored & ~accepted & blocked & (filter_resets < options.max_filter_resets)
+        unblock = factored & ~accepted & ~soft & blocked & (filter_resets < options.max_filter_resets)
         filter_theta = jnp.where(unblock, jnp.full_like(filter_theta, jnp.inf).at[0].set(state.theta_max), filter_theta)
         filter_phi = jnp.where(unblock, jnp.full_like(filter_phi, jnp.inf).at[0].set(-jnp.inf), filter_phi)
         filter_count = jnp.where(unblock, 1, filter_count)
         filter_resets = filter_resets + unblock.astype(filter_resets.dtype)
-        rejections = jnp.where(accepted | unblock, 0, state.rejections + 1)
+        moved = accepted | soft
+        rejections = jnp.where(moved | unblock, 0, state.rejections + 1)
         v_new, _ = violation(nlp, P_new[0], P_new[1])
         record = jnp.stack([
             stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w, solves,
@@ -677,8 +716,9 @@ def advance(nlp, state, options=Options(), until=None):
             P=P_new, y=y_new, zl=zl_new, zu=zu_new, mu=mu,
             regularisation=jnp.where(delta_w > 0, delta_w, state.regularisation),
             # A rejected step is retried from a more heavily regularised (shorter, steeper) one.
-            forced=jnp.where(accepted | unblock, 0.0, jnp.maximum(delta_w * 100.0, 1e-4)),
+            forced=jnp.where(moved | unblock, 0.0, jnp.maximum(delta_w * 100.0, 1e-4)),
             filter_theta=filter_theta, filter_phi=filter_phi, filter_count=filter_count, filter_resets=filter_resets,
+            soft_steps=jnp.where(soft, soft_steps + 1, jnp.where(accepted, 0, soft_steps)),
             rejections=rejections, iterations=state.iterations + 1,
             barrier_updates=state.barrier_updates + updates, status=status, violation=v_new,
             stationarity=error0, history=state.history.at[state.iterations].set(record),
