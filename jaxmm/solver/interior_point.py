@@ -52,7 +52,10 @@ class Status(enum.IntEnum):
     STALLED = 2  # feasible, but no acceptable step improves the objective any more
     NAN = 3  # a non-finite value appeared; the last finite iterate is returned
     RUNNING = 4
-    INFEASIBLE = 5  # infeasible, and no acceptable step reduces the infeasibility: locally infeasible
+    # Infeasible, and no step the line search tried was acceptable: a locally infeasible problem or
+    # a line search that failed near a feasible point (without a restoration phase the solver
+    # cannot tell them apart; ``Solution.violation`` says how far from feasible it stopped).
+    INFEASIBLE = 5
     INTERRUPTED = 6  # stopped by the user (Ctrl-C) between iterations; the last iterate is returned
     TIME_LIMIT = 7  # stopped when its time budget ran out, between iterations; the last iterate is returned
 
@@ -64,7 +67,8 @@ class Status(enum.IntEnum):
             Status.STALLED: "stalled: feasible, but no acceptable step improves the objective",
             Status.NAN: "a non-finite value appeared; returned the last finite iterate",
             Status.RUNNING: "running",
-            Status.INFEASIBLE: "locally infeasible: no acceptable step reduces the constraint violation",
+            Status.INFEASIBLE: "infeasible: no acceptable step found with the constraint violation above tolerance "
+                               "(locally infeasible, or the line search failed; see the violation)",
             Status.INTERRUPTED: "interrupted before converging; returned the last iterate",
             Status.TIME_LIMIT: "stopped when the time budget ran out, before converging; returned the last iterate",
         }[self]
