@@ -37,11 +37,16 @@ What is measured (wall clock):
   once-per-solve setup (first cost gradient, initial violation) and varies with the number of
   line-search trials. Given alone, --knots skips the scenario table; add --scenarios for both.
 
+--coarse NC solves each scenario coarse to fine: the scenario on NC intervals over the same
+horizons (``tasks.with_intervals``) from its published guess, then the scenario itself from that
+answer resampled to its knots; IPOPT still starts from the published guess. The iterations
+column then reads "coarse + fine"; compile and solve times count both levels.
+
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.
 
 Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
-       [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M]
+       [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M] [--coarse NC]
 """
 
 import os
@@ -64,6 +69,7 @@ from jaxmm import analysis, optimise, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
 from jaxmm.transcription import stagewise  # noqa: E402
+from jaxmm.transcription.variables import resample  # noqa: E402
 
 IPOPT_TOLERANCE = 1e-4  # the paper's IPOPT tol and constr_viol_tol (physical units)
 KNOT_SCENARIO = "take_off"
@@ -92,14 +98,29 @@ def measure(task, trajectory):
     return stagewise.residuals(nlp, Z, theta).cost, ip.violation(nlp, Z, theta)[0]
 
 
-def solve_ours(task, guess, options, repeats):
-    """(compile seconds, median solve seconds, TaskSolution) of the compiled solve."""
-    compiled, compile_time = timed(lambda: optimise.compile_solve(task, guess, options))
+def solve_ours(task, guess, options, repeats, coarse=None):
+    """(compile seconds, median solve seconds, TaskSolution, coarse TaskSolution or None) of the
+    compiled solve; with ``coarse`` (a number of intervals), coarse to fine: the task on that
+    many intervals (``tasks.with_intervals``) solved from its own published guess, its answer
+    resampled (``variables.resample``) as the guess of the task's solve; compile time: both
+    compilations; solve time: both solves and the resampling."""
+    if coarse is None:
+        compiled, compile_time = timed(lambda: optimise.compile_solve(task, guess, options))
+        run = lambda: (jax.block_until_ready(compiled()), None)  # noqa: E731
+    else:
+        coarse_task = tasks.with_intervals(task, coarse)
+        (compiled_coarse, compiled), compile_time = timed(lambda: (
+            optimise.compile_solve(coarse_task, tasks.initial_guess(coarse_task), options),
+            optimise.compile_solve(task, guess, options)))  # fmt: skip
+
+        def run():
+            rough = jax.block_until_ready(compiled_coarse())
+            return jax.block_until_ready(compiled(resample(rough.trajectory, task.n_knots))), rough
     times, result = [], None
     for _ in range(repeats):
-        result, seconds = timed(lambda: jax.block_until_ready(compiled()))
+        result, seconds = timed(run)
         times.append(seconds)
-    return compile_time, statistics.median(times), result
+    return compile_time, statistics.median(times), *result
 
 
 # --------------------------------------------------------------------------------------- report
@@ -109,19 +130,21 @@ def verdict(report):
     return "ok" if report.ok else f"FAILED ({len(report.failed)})"
 
 
-def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack_penalty):
+def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack_penalty, coarse):
     """Everything printed about one scenario, as a dict; IPOPT too if urdf_path is given."""
     task = tasks.scenario(name, knots=knots, slack_penalty=slack_penalty)
     guess = tasks.initial_guess(task)
     label = name if slack_penalty == "linear" else f"{name} ({slack_penalty} slacks)"
+    label = label if coarse is None else f"{label}, from N = {coarse}"
     row = dict(name=label, N=task.n_intervals, sizes=sizes(task, guess))
     log(f"{name} N = {task.n_intervals}: compiling our solve...")
-    compile_time, solve_time, result = solve_ours(task, guess, options, repeats)
+    compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse)
     log(f"{name}: solved in {format_time(solve_time)} (median of {repeats}); validating...")
     objective, violation = (float(v) for v in measure(task, result.trajectory))
     row["ours"] = dict(
         compile=compile_time, solve=solve_time, objective=objective, violation=violation,
-        outer=int(result.solution.barrier_updates), inner=int(result.solution.iterations),
+        outer=int(result.solution.barrier_updates), inner=str(int(result.solution.iterations)) if rough is None
+        else f"{int(rough.solution.iterations)} + {int(result.solution.iterations)}",
         solves=block_solves_per_iteration(result.solution), status=result.status.message,
         report=analysis.validate(task, result.trajectory),
     )  # fmt: skip
@@ -192,7 +215,7 @@ def knot_study(counts, budget, repeats):
         task = tasks.scenario(KNOT_SCENARIO, knots=knots)
         guess = tasks.initial_guess(task)
         log(f"{KNOT_SCENARIO} N = {knots}: compiling (budget {budget} iterations)...")
-        compile_time, solve_time, result = solve_ours(task, guess, options, repeats)
+        compile_time, solve_time, result, _ = solve_ours(task, guess, options, repeats)
         inner = int(result.solution.iterations)
         per_iteration = solve_time / max(inner, 1)
         first = first or (knots, per_iteration)
@@ -218,6 +241,8 @@ def main():
     parser.add_argument("--max-iterations", type=int, default=None, help="iteration limit of both solvers")
     parser.add_argument("--slack-penalty", choices=tasks.SLACK_PENALTIES, default="linear",
                         help="penalty of the complementarity slacks: linear (the published runs, default) or squared (the paper's text)")
+    parser.add_argument("--coarse", type=int, default=None,
+                        help="solve each scenario from the solution of its version on this many intervals (same horizons)")
     args = parser.parse_args()
 
     run_scenarios = args.scenarios is not None or args.knots is None
@@ -242,7 +267,7 @@ def main():
             for name in names:
                 rows.append(run_scenario(
                     name, args.knots_override, options, args.repeats, urdf.name if args.ipopt else None, args.max_iterations,
-                    args.slack_penalty,
+                    args.slack_penalty, args.coarse,
                 ))
     knot_table = None
     if args.knots is not None:
@@ -252,7 +277,8 @@ def main():
     print("\n".join(header))
     if rows:
         print(
-            f"Scenarios from the published initial guess, {'N = ' + str(args.knots_override) if args.knots_override else 'published N'}; "
+            f"Scenarios from the published initial guess, {'N = ' + str(args.knots_override) if args.knots_override else 'published N'}"
+            f"{'' if args.coarse is None else f', ours through the solution on N = {args.coarse} intervals (iterations: coarse + fine)'}; "
             f"our solver: tolerance {options.tolerance:g} (violation), stationarity {options.stationarity:g}, "
             f"max {options.max_iterations} iterations; solve = median of {args.repeats} runs of the compiled solve; "
             "objective and max violation (NLP units) of the returned trajectory by the same JAX function for both sides"

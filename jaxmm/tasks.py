@@ -239,6 +239,21 @@ def scenario(name, robot=None, knots=None, keep_horizon=False, **overrides):
     )
 
 
+def with_intervals(task, n_intervals):
+    """``task`` on ``n_intervals`` intervals over the same range of horizons: the time-step
+    bounds (min_dt, max_dt [s]) scaled by N / n_intervals, everything else kept (a coarse
+    version of a task, whose solution, resampled with ``variables.resample``, is a guess for
+    the task itself; the mid-horizon height applies at the new middle knot). For a published
+    scenario this is ``scenario(name, knots=n_intervals, keep_horizon=True)``."""
+    if not isinstance(task, Task):
+        raise TypeError(f"task must be a Task, got {type(task).__name__}")
+    if isinstance(n_intervals, bool) or not isinstance(n_intervals, (int, np.integer)) or n_intervals < 2:
+        raise ValueError(f"n_intervals must be an integer ≥ 2, got {n_intervals!r}")
+    scale = task.n_intervals / int(n_intervals)
+    params = dataclasses.replace(task.params, min_dt=task.params.min_dt * scale, max_dt=task.params.max_dt * scale)
+    return dataclasses.replace(task, params=params, n_intervals=int(n_intervals))
+
+
 def _planner_joint_limits(robot, description):
     planner = dict(zip(description["joints"]["optimised"], np.deg2rad(description["planner"]["joint_limits_deg"])))
     urdf = np.asarray(robot.model.position_limits)

@@ -138,3 +138,18 @@ def test_warm_start_from_the_solution_of_a_neighbouring_task(take_off):
     assert all(c.passed for c in warm_report.checks if c.name.startswith("constraint ")), str(warm_report)
     print(f"warm start: {int(warm.solution.iterations)} iterations, objective {ours:.8e} "
           f"(cold: {int(reference.solution.iterations)}, {theirs:.8e})")
+
+
+def test_with_intervals_keeps_the_horizons_and_names_bad_counts():
+    """``tasks.with_intervals`` of a published scenario is that scenario built with fewer knots
+    and ``keep_horizon`` (every leaf equal); a count that is not an integer ≥ 2 is refused."""
+    coarse = tasks.with_intervals(tasks.scenario("take_off"), REDUCED_TAKE_OFF["knots"])
+    built = tasks.scenario("take_off", knots=REDUCED_TAKE_OFF["knots"], keep_horizon=True)
+    assert coarse.n_intervals == built.n_intervals and jax.tree.structure(coarse) == jax.tree.structure(built)
+    for a, b in zip(jax.tree.leaves(coarse), jax.tree.leaves(built)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_allclose(float(coarse.params.max_dt) * 14, 0.1 * 70)
+    for bad in (1, 2.5, True, "7"):
+        with pytest.raises(ValueError, match="n_intervals must be an integer"):
+            tasks.with_intervals(built, bad)
+
