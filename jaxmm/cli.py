@@ -11,6 +11,10 @@ animation. Progress (compiling, then every iteration) is shown on a terminal and
 the output is piped or ``CI`` is set. With ``--time-budget S``, the end of S seconds of iterating
 or a Ctrl-C stops the solve with its last iterate, which is written like any other (status
 ``INTERRUPTED`` or ``TIME_LIMIT`` in the summary; exit code 1); a second Ctrl-C aborts.
+
+Compiled programs are kept on disk (``jaxmm.compilation.use_persistent_cache``; ``--cache-dir``,
+default ``~/.cache/jaxmm/xla``, or ``$JAX_COMPILATION_CACHE_DIR`` when set; ``--no-cache``): the
+first solve of a scenario at a knot count compiles, the next ones load the programs.
 """
 
 import argparse
@@ -24,7 +28,7 @@ import tempfile
 import threading
 import time
 
-ERRORS = (ValueError, KeyError, FileNotFoundError, TypeError, ImportError)
+ERRORS = (ValueError, KeyError, OSError, TypeError, ImportError)
 
 
 class Progress:
@@ -236,6 +240,25 @@ def _scenario_arguments(parser):
     parser.add_argument("--quiet", action="store_true", help="no progress display")
     parser.add_argument("--time-budget", type=float, metavar="S",
                         help="stop iterating after S seconds and keep the last iterate (default: no limit)")
+    cache = parser.add_mutually_exclusive_group()
+    cache.add_argument("--cache-dir", metavar="DIR",
+                       help="keep compiled programs in DIR (default: ~/.cache/jaxmm/xla, or $JAX_COMPILATION_CACHE_DIR)")
+    cache.add_argument("--no-cache", action="store_true", help="compile without the on-disk cache")
+
+
+def cache_directory(args):
+    """The directory the command keeps compiled programs in, or None for none: ``--cache-dir``,
+    else none with ``--no-cache``, else JAX's own setting (``$JAX_COMPILATION_CACHE_DIR``) when
+    there is one, else ``compilation.default_cache_directory()``."""
+    from jaxmm import compilation
+
+    if getattr(args, "cache_dir", None) is not None:
+        return pathlib.Path(args.cache_dir)
+    if getattr(args, "no_cache", True):  # commands that compile nothing have neither option
+        return None
+    import jax
+
+    return pathlib.Path(jax.config.jax_compilation_cache_dir or compilation.default_cache_directory())
 
 
 def main(argv=None):
@@ -263,6 +286,11 @@ def main(argv=None):
     if budget is not None and not 0 < budget < float("inf"):
         parser.error(f"--time-budget must be a positive number of seconds, got {budget}")
     try:
+        directory = cache_directory(args)
+        if directory is not None:
+            from jaxmm import compilation
+
+            compilation.use_persistent_cache(directory)
         return args.run(args) or 0
     except ERRORS as error:
         print(f"jaxmm {args.command}: error: {error}", file=sys.stderr)

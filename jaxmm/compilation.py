@@ -8,11 +8,18 @@ kinematics Jacobian of 71 knots 30 → 22 ms, its second derivative 55 → 44 ms
 (same run); at N = 14 no difference beyond the machine's noise (±15 %). The option is passed
 only where this jaxlib knows it (checked once, by compiling a trivial function); it changes
 nothing on other backends.
+
+``use_persistent_cache``: compiled programs kept on disk (JAX's persistent compilation cache), so
+that a new process solving a problem structure solved before loads its programs instead of
+compiling them again (the command line's default).
 """
 
 import functools
+import os
+import pathlib
 
 import jax
+from jax.experimental.compilation_cache import compilation_cache
 
 _OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}  # "": no YNNPACK fusions
 
@@ -57,3 +64,41 @@ def jit(fn=None, **kwargs):
     if fn is None:
         return functools.partial(jit, **kwargs)
     return _Jitted(fn, kwargs)
+
+
+def default_cache_directory():
+    """Where ``use_persistent_cache`` keeps programs by default: ``$JAXMM_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/jaxmm/xla``, else ``~/.cache/jaxmm/xla``."""
+    if os.environ.get("JAXMM_CACHE_DIR"):
+        return pathlib.Path(os.environ["JAXMM_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache"
+    return pathlib.Path(base) / "jaxmm" / "xla"
+
+
+def use_persistent_cache(directory=None, max_size=None, min_compile_seconds=1.0):
+    """Keep every compiled program that took at least ``min_compile_seconds`` [s] to compile in
+    ``directory`` (default: ``default_cache_directory()``), and load it from there in later
+    processes: a problem structure (robot, knot count, options) is compiled once per machine
+    and JAX/jaxlib version. Returns the directory (created if missing).
+
+    max_size [bytes]: the cache's limit, least recently used entries going first (default: JAX's
+    ``$JAX_COMPILATION_CACHE_MAX_SIZE`` when set, else 16 GiB). A limit also turns on JAX's file
+    lock, without which one process can read a program another is still writing. Only trusted users should be able to write to the directory: JAX runs what it loads.
+    Takes effect for programs compiled after the call (programs already in this process's
+    memory are reused as they are).
+    """
+    path = pathlib.Path(default_cache_directory() if directory is None else directory).expanduser()
+    if path.exists() and not path.is_dir():
+        raise NotADirectoryError(f"compilation cache directory {path} exists and is not a directory")
+    if max_size is None:
+        max_size = jax.config.jax_compilation_cache_max_size
+        max_size = max_size if max_size > 0 else 16 << 30
+    if not int(max_size) > 0:
+        raise ValueError(f"max_size must be a positive number of bytes, got {max_size}")
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_max_size", int(max_size))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
+    if jax.config.jax_compilation_cache_dir != str(path):
+        jax.config.update("jax_compilation_cache_dir", str(path))
+        compilation_cache.reset_cache()  # JAX opens its cache once; reopen it at the new place
+    return path

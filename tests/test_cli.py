@@ -1,6 +1,7 @@
 """The command line: every command does its job end to end; bad input exits 2 with a message
 and writes nothing."""
 
+import argparse
 import dataclasses
 import io as io_module
 import json
@@ -11,7 +12,7 @@ import PIL.Image
 import pytest
 
 import jaxmm
-from jaxmm.cli import Progress, main
+from jaxmm.cli import Progress, cache_directory, main
 
 
 def test_robot_summary_of_default_robot(capsys):
@@ -100,6 +101,35 @@ def test_solve_rejects_bad_input_with_a_message_and_no_output(argv, message, tmp
     assert main(argv + ["--out", str(tmp_path / "out")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_cache_directory_that_is_a_file_is_named_and_nothing_is_written(tmp_path, capsys):
+    occupied = tmp_path / "occupied"
+    occupied.write_text("")
+    assert main(["solve", "take-off", "--cache-dir", str(occupied), "--out", str(tmp_path / "out")]) == 2
+    assert f"compilation cache directory {occupied} exists and is not a directory" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(SystemExit) as exit:
+        main(["solve", "take-off", "--cache-dir", str(tmp_path), "--no-cache"])
+    assert exit.value.code == 2 and "not allowed with" in capsys.readouterr().err
+
+
+def test_the_cache_directory_a_command_uses(tmp_path, monkeypatch):
+    from jaxmm import compilation
+
+    solve = dict(cache_dir=None, no_cache=False)
+    assert cache_directory(argparse.Namespace(**dict(solve, cache_dir=str(tmp_path)))) == tmp_path
+    assert cache_directory(argparse.Namespace(**dict(solve, no_cache=True))) is None
+    assert cache_directory(argparse.Namespace()) is None  # `robot`, `scenarios`: nothing to compile
+    saved = jax.config.jax_compilation_cache_dir  # read only: no cache is re-pointed here
+    try:
+        jax.config.update("jax_compilation_cache_dir", str(tmp_path / "jax"))
+        assert cache_directory(argparse.Namespace(**solve)) == tmp_path / "jax"  # JAX's own setting first
+        jax.config.update("jax_compilation_cache_dir", None)
+        monkeypatch.setenv("JAXMM_CACHE_DIR", str(tmp_path / "mine"))
+        assert cache_directory(argparse.Namespace(**solve)) == compilation.default_cache_directory() == tmp_path / "mine"
+    finally:
+        jax.config.update("jax_compilation_cache_dir", saved)
 
 
 def test_knots_below_two_is_a_usage_error(capsys):

@@ -4,6 +4,8 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
+from jax.experimental.compilation_cache import compilation_cache
 
 import jaxmm
 from jaxmm import compilation
@@ -49,3 +51,49 @@ def test_nested_in_other_transformations():
     assert jax.eval_shape(lambda x: f(x, 2), x).shape == ()
     assert f.__doc__ == "x to the power." and f.__name__ == "f"
     assert f._cache_size() == 1  # what jax.jit offers is there (lower, _cache_size, …)
+
+
+@pytest.fixture
+def jax_cache_settings():
+    """Restores this process's persistent-cache settings (the conftest's) after the test."""
+    names = ("jax_compilation_cache_dir", "jax_compilation_cache_max_size", "jax_persistent_cache_min_compile_time_secs")
+    saved = {name: getattr(jax.config, name) for name in names}
+    yield
+    for name, value in saved.items():
+        jax.config.update(name, value)
+    compilation_cache.reset_cache()
+
+
+def _entries(directory):
+    return sorted(p.name for p in directory.iterdir() if p.name.endswith("-cache"))
+
+
+def test_persistent_cache_keeps_programs_where_it_is_pointed(tmp_path, jax_cache_settings):
+    first, second = tmp_path / "first", tmp_path / "second"
+    assert compilation.use_persistent_cache(first, min_compile_seconds=0) == first
+    np.testing.assert_allclose(jax.jit(lambda x: jnp.sin(x) * 3.25)(1.0), np.sin(1.0) * 3.25)
+    kept = _entries(first)
+    assert any(name.startswith("jit__lambda") for name in kept)
+    assert jax.config.jax_compilation_cache_max_size > 0  # the limit that turns the file lock on
+    compilation.use_persistent_cache(second, min_compile_seconds=0)  # re-pointed in the same process
+    jax.jit(lambda x: jnp.cos(x) * 1.75)(1.0).block_until_ready()
+    assert _entries(first) == kept
+    assert any(name.startswith("jit__lambda") for name in _entries(second))
+    assert not set(_entries(second)) & set(kept)
+
+
+def test_persistent_cache_names_a_bad_directory(tmp_path, jax_cache_settings):
+    occupied = tmp_path / "a-file"
+    occupied.write_text("")
+    with pytest.raises(NotADirectoryError, match="a-file exists and is not a directory"):
+        compilation.use_persistent_cache(occupied)
+    with pytest.raises(ValueError, match="max_size must be a positive"):
+        compilation.use_persistent_cache(tmp_path, max_size=0)
+
+
+def test_default_cache_directory_follows_the_environment(tmp_path, monkeypatch):
+    monkeypatch.delenv("JAXMM_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert compilation.default_cache_directory() == tmp_path / "jaxmm" / "xla"
+    monkeypatch.setenv("JAXMM_CACHE_DIR", str(tmp_path / "mine"))
+    assert compilation.default_cache_directory() == tmp_path / "mine"
