@@ -83,9 +83,10 @@ def use_persistent_cache(directory=None, max_size=None, min_compile_seconds=1.0)
 
     max_size [bytes]: the cache's limit, least recently used entries going first (default: JAX's
     ``$JAX_COMPILATION_CACHE_MAX_SIZE`` when set, else 16 GiB). A limit also turns on JAX's file
-    lock, without which one process can read a program another is still writing. Only trusted users should be able to write to the directory: JAX runs what it loads.
-    Takes effect for programs compiled after the call (programs already in this process's
-    memory are reused as they are).
+    lock, without which one process can read a program another is still writing. Only trusted
+    users should be able to write to the directory: JAX runs what it loads. Takes effect for
+    programs compiled after the call (programs already in this process's memory are reused as
+    they are).
     """
     path = pathlib.Path(default_cache_directory() if directory is None else directory).expanduser()
     if path.exists() and not path.is_dir():
