@@ -428,7 +428,8 @@ def advance(nlp, state, options=Options(), until=None):
     def primal_dual_error(dual, c, comp):
         """The barrier problem's primal–dual error, IPOPT's soft-restoration measure: mean |dual
         infeasibility| + mean |residual| + mean |distance · z − μ|."""
-        return sum(sum(jnp.sum(jnp.abs(v)) for v in tree) / max(sum(v.size for v in tree), 1) for tree in (dual, c, comp))
+        return sum(sum(jnp.sum(jnp.abs(v)) for v in tree) / max(sum(v.size for v in tree), 1)
+                   for tree in (dual, c, comp))
 
     def primal_dual_error_at(P, y, zl, zu, mu):
         """``primal_dual_error`` at a point the iteration has no Jacobian blocks of (a trial)."""
