@@ -419,9 +419,9 @@ def advance(nlp, state, options=Options(), until=None):
     supports = stagewise.row_supports(nlp)
     coupled = rows.coupled_columns(supports)
 
-    def complementarity(P, zl, zu, mu):
-        """distance · z − μ per bound (0 where there is none), lower bounds' leaves first."""
-        dl, du = _distances(P, bounds)
+    def complementarity(dl, du, zl, zu, mu):
+        """distance · z − μ per bound (0 where there is none), lower bounds' leaves first, from
+        the distances (dl, du) = ``_distances``."""
         return _tmap(lambda a, z, m: jnp.where(m, a * z - mu, 0.0), dl + du, zl + zu,
                      bounds.has_lower + bounds.has_upper)
 
@@ -440,7 +440,7 @@ def advance(nlp, state, options=Options(), until=None):
 
         grad, c = jax.grad(lagrangian, has_aux=True)(P)
         dual = _tmap(lambda g, a, b, f: jnp.where(f, g - a + b, 0.0), grad, zl, zu, bounds.free)
-        return primal_dual_error(dual, c, complementarity(P, zl, zu, mu))
+        return primal_dual_error(dual, c, complementarity(*_distances(P, bounds), zl, zu, mu))
 
     def body(state):
         P, y, zl, zu = state.P, state.y, state.zl, state.zu
@@ -465,7 +465,7 @@ def advance(nlp, state, options=Options(), until=None):
         primal_error = _max_abs(c)
 
         def complementarity_error(mu):
-            return _max_abs(complementarity(P, zl, zu, mu)) / s_c
+            return _max_abs(complementarity(dl, du, zl, zu, mu)) / s_c
 
         v_now = state.violation
         error0 = jnp.maximum(dual_error, complementarity_error(0.0))
@@ -689,7 +689,7 @@ def advance(nlp, state, options=Options(), until=None):
             # through the NLP costs ≈ 6 s of compilation.
             slack_dual = tuple(jnp.where(f, -yi * a - p + q, 0.0) for yi, a, p, q, f in
                                zip(y[2:], active, zl[2:], zu[2:], bounds.free[2:]))
-            now = primal_dual_error(dual[:2] + slack_dual, c, complementarity(P, zl, zu, mu))
+            now = primal_dual_error(dual[:2] + slack_dual, c, complementarity(dl, du, zl, zu, mu))
             return primal_dual_error_at(*trial, mu) <= 0.9999 * now
 
         soft = jax.lax.cond(factored & ~accepted & (soft_steps < options.max_soft_steps), soft_trial,
