@@ -241,6 +241,8 @@ def main():
     parser.add_argument("--max-iterations", type=int, default=None, help="iteration limit of both solvers")
     parser.add_argument("--slack-penalty", choices=tasks.SLACK_PENALTIES, default="linear",
                         help="penalty of the complementarity slacks: linear (the published runs, default) or squared (the paper's text)")
+    parser.add_argument("--ipopt-slacks", action="store_true",
+                        help="treat the slacks as IPOPT does (ip.Options.ipopt_slacks: their start and δ_w on them)")
     parser.add_argument("--coarse", type=int, default=None,
                         help="solve each scenario from the solution of its version on this many intervals (same horizons)")
     args = parser.parse_args()
@@ -253,6 +255,7 @@ def main():
     options = optimise.DEFAULT_OPTIONS
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
+    options = dataclasses.replace(options, ipopt_slacks=args.ipopt_slacks)
 
     logging.getLogger("yourdfpy").setLevel(logging.ERROR)  # unresolved mesh files are irrelevant
     started = time.perf_counter()

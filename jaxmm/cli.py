@@ -75,11 +75,11 @@ class Progress:
 
     def iteration(self, iteration, record):
         """The solver's per-iteration callback (``Options.progress``)."""
-        objective, violation, stationarity, barrier, step, regularisation, solves = (float(v) for v in record)
+        objective, violation, stationarity, barrier, step, regularisation, solves, restoring = (float(v) for v in record)
         self._write(
-            f"iteration {int(iteration) + 1:5d}  objective {objective:.6e}  violation {violation:.1e}  "
-            f"stationarity {stationarity:.1e}  barrier μ {barrier:.0e}  step {step:.2g}  regularisation {regularisation:.0e}  "
-            f"solves {solves:.0f}"
+            f"iteration {int(iteration) + 1:5d}{'r' if restoring == 1 else ' '} objective {objective:.6e}  "
+            f"violation {violation:.1e}  stationarity {stationarity:.1e}  barrier μ {barrier:.0e}  step {step:.2g}  "
+            f"regularisation {regularisation:.0e}  solves {solves:.0f}"
         )
 
     def done(self):
@@ -120,6 +120,8 @@ def _solve(task, args, progress):
     options = optimise.DEFAULT_OPTIONS
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
+    if getattr(args, "ipopt_slacks", False):
+        options = dataclasses.replace(options, ipopt_slacks=True)
     if progress.live:
         options = dataclasses.replace(options, progress=progress.iteration)
     with progress.compiling(f"the solve of {task.name} (N = {task.n_intervals})") as compiling:
@@ -238,6 +240,8 @@ def _scenario_arguments(parser):
     parser.add_argument("--urdf", help="another URDF of iRonCub (same joint, jet and contact frame names)")
     parser.add_argument("--max-iterations", type=int, help="solver iteration limit (default 1500)")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
+    parser.add_argument("--ipopt-slacks", action="store_true",
+                        help="treat the inequality slacks as IPOPT does (how walk-to-fly converges; see the README)")
     parser.add_argument("--time-budget", type=float, metavar="S",
                         help="stop iterating after S seconds and keep the last iterate (default: no limit)")
     cache = parser.add_mutually_exclusive_group()

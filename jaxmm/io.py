@@ -1,6 +1,6 @@
 """Saved solutions: a solved task written to one ``.npz`` file with a JSON header, and read back.
 
-The file (format ``jaxmm-solution``, version 2) holds NumPy arrays only (no pickles) and one
+The file (format ``jaxmm-solution``, version 3) holds NumPy arrays only (no pickles) and one
 JSON header ``__header__``:
 
 * ``format``, ``version``, ``jaxmm_version``, ``saved_at`` (UTC, ISO 8601);
@@ -14,8 +14,9 @@ JSON header ``__header__``:
   solver's ``Solution`` (scaled variables, multipliers, bound multipliers, history), enough to
   warm-start a new solve from the loaded result.
 
-Version 1 files (before the history recorded the linear solves of each iteration) are read
-too: their history gets that column as NaN.
+Files of versions 1 (before the history recorded the linear solves of each iteration) and 2
+(before it marked the restoration phase's iterations) are read too: their history gets the
+missing columns as NaN.
 
 Arrays are named by their path in the skeleton (``trajectory.knots.com``). Files are written
 atomically: a temporary file in the same directory, renamed over the target once complete.
@@ -39,8 +40,8 @@ from jaxmm.transcription.problem import Task, TaskParams, Weights
 from jaxmm.transcription.variables import Knot, Trajectory
 
 FORMAT = "jaxmm-solution"
-VERSION = 2
-READABLE_VERSIONS = (1, 2)
+VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 _HEADER = "__header__"
 _CLASSES = {cls.__name__: cls for cls in (Trajectory, Knot, ip.Solution, ip.Multipliers, TaskParams, Weights)}
 
@@ -242,10 +243,11 @@ def load(path, robot=None):
         )
         trajectory = _decode(header["trajectory"], arrays)
         solution = _decode(header["solution"], arrays)
-        if header["version"] == 1:  # no linear-solves column yet
-            history = np.asarray(solution.history)
+        history = np.asarray(solution.history)
+        missing = len(ip.HISTORY_COLUMNS) - history.shape[1]  # columns newer than the file
+        if missing > 0:
             solution = dataclasses.replace(solution, history=jax.numpy.asarray(
-                np.concatenate([history, np.full((history.shape[0], 1), np.nan)], axis=1)))
+                np.concatenate([history, np.full((history.shape[0], missing), np.nan)], axis=1)))
         families = {k: jax.numpy.asarray(v) for k, v in header["violation_per_family"].items()}
     except (KeyError, TypeError) as error:
         raise SolutionFileError(f"{os.fspath(path)!r}: incomplete header ({error!r})") from None

@@ -218,7 +218,8 @@ _HISTORY_LABELS = dict(
 def plot_convergence(result, *, fig=None, tolerance=ip.Options().tolerance):
     """The solve of a ``TaskSolution``: each column of ``solution.history``
     (``ip.HISTORY_COLUMNS``) against the iteration on a log axis (non-positive values are left out;
-    rejected steps, α = 0, are marked ×), and the largest violation of each constraint family
+    rejected steps, α = 0, are marked ×; iterations of the restoration phase are marked on the
+    violation panel rather than given one of their own), and the largest violation of each constraint family
     (NLP units) at the answer against tolerance (default: the solver's). Returns the Figure."""
     solution = result.solution
     history = np.asarray(solution.history)
@@ -226,16 +227,22 @@ def plot_convergence(result, *, fig=None, tolerance=ip.Options().tolerance):
     if history.ndim != 2 or history.shape[1] != len(ip.HISTORY_COLUMNS):
         raise ValueError(f"the history must have shape (max_iterations, {len(ip.HISTORY_COLUMNS)}), got {history.shape}")
     history = history[:iterations]
-    panels = len(ip.HISTORY_COLUMNS)
+    restoring = history[:, ip.HISTORY_COLUMNS.index("restoration")] == 1  # NaN (older files): no
+    columns = [name for name in ip.HISTORY_COLUMNS if name != "restoration"]
+    panels = len(columns)
     fig = _figure(fig, figsize=(12, 9), layout="constrained")
     grid = fig.add_gridspec((panels + 1) // 2, 3, width_ratios=(1, 1, 1.1))
     steps = np.arange(iterations)
     first = None
-    for index, name in enumerate(ip.HISTORY_COLUMNS):
+    for index, name in enumerate(columns):
         ax = fig.add_subplot(grid[index // 2, index % 2], sharex=first)
         first = first or ax
-        values = history[:, index]
+        values = history[:, ip.HISTORY_COLUMNS.index(name)]
         ax.semilogy(steps, np.where(values > 0, values, np.nan), color="k", lw=1)
+        if name == "violation" and restoring.any():
+            ax.plot(steps[restoring], np.where(values > 0, values, np.nan)[restoring], ".", color="tab:orange", ms=4,
+                    label=f"restoration phase ({int(restoring.sum())})")
+            ax.legend(fontsize="small")
         if name == "step_length":
             rejected = steps[values == 0]
             ax.plot(rejected, np.full(rejected.shape, np.nanmin(np.where(values > 0, values, np.nan), initial=1.0)),

@@ -54,20 +54,22 @@ def test_the_header_is_readable_without_jax(saved):
         assert "trajectory.knots.com" in data.files
 
 
-def test_a_version_1_file_is_read_with_its_history_missing_the_linear_solves(saved, tmp_path):
-    """Files written before the history had its linear-solves column still load (and plot)."""
+@pytest.mark.parametrize("version, missing", [(1, 2), (2, 1)])
+def test_an_older_file_is_read_with_its_history_missing_the_newer_columns(saved, tmp_path, version, missing):
+    """Files written before the history had its linear-solves (version 1) and restoration
+    (version 2) columns still load (and plot), those columns NaN."""
     path, _, result = saved
 
-    def as_version_1(arrays):
-        arrays["solution.history"] = arrays["solution.history"][:, :-1]
+    def as_older(arrays):
+        arrays["solution.history"] = arrays["solution.history"][:, :-missing]
         content = json.loads(str(arrays["__header__"]))
-        arrays["__header__"] = np.array(json.dumps({**content, "version": 1}))
+        arrays["__header__"] = np.array(json.dumps({**content, "version": version}))
 
-    _, loaded = io.load(_rewrite(path, tmp_path / "version_1.npz", as_version_1))
+    _, loaded = io.load(_rewrite(path, tmp_path / f"version_{version}.npz", as_older))
     history, original = np.asarray(loaded.solution.history), np.asarray(result.solution.history)
     assert history.shape == original.shape
-    np.testing.assert_array_equal(history[:, :-1], original[:, :-1])
-    assert np.all(np.isnan(history[:, -1]))
+    np.testing.assert_array_equal(history[:, :-missing], original[:, :-missing])
+    assert np.all(np.isnan(history[:, -missing:]))
     _leaves_equal(loaded.trajectory, result.trajectory)
 
 

@@ -8,6 +8,7 @@ import numpy as np
 
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import interior_point as ip
+from jaxmm.transcription import stagewise
 from jaxmm.transcription.stagewise import StagewiseFunctions, StagewiseNLP
 
 K = 12
@@ -132,6 +133,62 @@ def test_infeasible_problem_is_reported_with_finite_numbers():
     assert np.all(np.isfinite(np.asarray(solution.Z))) and np.isfinite(float(solution.violation))
     assert float(solution.violation) > 1.0
 
+
+
+def _wachter_biegler():
+    """Wächter & Biegler's example (Math. Program. 88, 2000), one copy per knot: min x₁ s.t.
+    x₁² − x₂ − 1 = 0, x₁ − x₃ − ½ = 0, x₂, x₃ ≥ 0; the solution is (1, 0, ½). From (−2, 1, 1)
+    line-search interior-point methods without a restoration phase stop at infeasible points."""
+
+    def circle(a, z, theta):
+        return jnp.array([z[0] ** 2 - z[1] - 1.0, z[0] - z[2] - 0.5])
+
+    functions = StagewiseFunctions(lambda a, z, theta, d: z[0] + 0.0 * d, lambda a, theta: 0.0 * theta[0], circle,
+                                   _no_transition, _no_path, _no_transition)
+    nlp = StagewiseNLP(
+        args=jnp.zeros(()), knot_data=jnp.zeros(3), z_lower=jnp.tile(jnp.array([-jnp.inf, 0.0, 0.0]), (3, 1)),
+        z_upper=jnp.full((3, 3), jnp.inf), theta_lower=jnp.zeros(1), theta_upper=jnp.zeros(1),
+        path_lower=EMPTY, path_upper=EMPTY, transition_lower=EMPTY, transition_upper=EMPTY, functions=functions,
+    )
+    return nlp, jnp.tile(jnp.array([-2.0, 1.0, 1.0]), (3, 1))
+
+
+def test_the_restoration_phase_leaves_the_infeasible_point_of_wachter_and_biegler():
+    """With the restoration phase entered at the first rejected step, the solve converges to
+    (1, 0, ½) through restoration iterations (marked in the history); without it, the solve
+    stops ``INFEASIBLE`` at the spurious point the example was built for: x₂ = x₃ = 0, where
+    the linearised constraints and the bounds are incompatible."""
+    nlp, Z0 = _wachter_biegler()
+    options = dataclasses.replace(OPTIONS, max_rejections=1)
+    restored = solve(nlp, Z0, jnp.zeros(1), options=options)
+    assert ip.Status(int(restored.status)) is ip.Status.CONVERGED
+    np.testing.assert_allclose(restored.Z, np.tile([1.0, 0.0, 0.5], (3, 1)), atol=1e-6)
+    history = np.asarray(restored.history)[: int(restored.iterations)]
+    restoring = history[:, ip.HISTORY_COLUMNS.index("restoration")] == 1
+    assert restoring.any() and np.all(history[restoring, ip.HISTORY_COLUMNS.index("step_length")] > 0)
+    assert not restoring[-1]
+
+    stuck = solve(nlp, Z0, jnp.zeros(1), options=dataclasses.replace(options, max_restoration_iterations=0))
+    assert ip.Status(int(stuck.status)) is ip.Status.INFEASIBLE
+    assert np.abs(np.asarray(stuck.Z[:, 1:])).max() <= 1e-6 and float(stuck.violation) > 0.4
+    assert not np.any(np.asarray(stuck.history)[: int(stuck.iterations), ip.HISTORY_COLUMNS.index("restoration")] == 1)
+
+
+def test_ipopt_slacks_start_at_the_rows_of_the_pushed_guess_and_reach_the_same_optimum():
+    """``Options.ipopt_slacks``: the slacks start at the rows' values at the guess pushed inside
+    its bounds (IPOPT's), not at the guess itself, and δ_w regularises them too; the optimum is
+    the same. Here the guess's u = 0.8 lies outside |u| ≤ 0.5: u² starts at 0.2401, not 0.64."""
+    nlp = _integrator(CAPPED, u_max=0.5, energy_cap=1.0)
+    Z0 = jnp.zeros((K, 3)).at[:, 2].set(0.8)
+    solutions = []
+    for ipopt_slacks in (False, True):
+        options = dataclasses.replace(OPTIONS, ipopt_slacks=ipopt_slacks)
+        state = ip.start(nlp, Z0, jnp.zeros(1), options)
+        rows_at_start = stagewise.residuals(nlp, state.P[0], state.P[1]).path_inequality * state.scaling[1][2]
+        assert np.allclose(state.P[2], rows_at_start, rtol=1e-12) == ipopt_slacks
+        solutions.append(solve(nlp, Z0, jnp.zeros(1), options=options))
+        assert ip.Status(int(solutions[-1].status)) is ip.Status.CONVERGED
+    np.testing.assert_allclose(solutions[1].Z, solutions[0].Z, atol=1e-6)
 
 # Per-knot Rosenbrock (1 − x)² + 100 (y − x²)², with a different box on x at each knot.
 def _rosenbrock(a, z, theta, d):

@@ -21,8 +21,10 @@ constraints' curvature at λ). Every linear system is bordered block-tridiagonal
 refined towards the exact (δ = 0) KKT system, with the regularised factor as preconditioner.
 When the full step increases the infeasibility, IPOPT's second-order corrections are tried;
 when the line search rejects every trial, IPOPT's soft restoration (a step that reduces the
-barrier problem's primal–dual error) and its filter reset; IPOPT's full restoration phase is
-not implemented.
+barrier problem's primal–dual error) and its filter reset; and when steps keep being rejected
+far from feasibility, a restoration phase (IPOPT's, with a least-squares infeasibility measure:
+damped Gauss–Newton steps on ½‖c‖² within the bounds' barrier) until a point acceptable to the
+filter is found.
 
 Rows and the cost are scaled at the starting point as IPOPT's gradient-based scaling does
 (no row or cost gradient above 100). The whole solve is one ``lax.while_loop``: it can be
@@ -52,9 +54,9 @@ class Status(enum.IntEnum):
     STALLED = 2  # feasible, but no acceptable step improves the objective any more
     NAN = 3  # a non-finite value appeared; the last finite iterate is returned
     RUNNING = 4
-    # Infeasible, and no step the line search tried was acceptable: a locally infeasible problem or
-    # a line search that failed near a feasible point (without a restoration phase the solver
-    # cannot tell them apart; ``Solution.violation`` says how far from feasible it stopped).
+    # Infeasible, and the restoration phase found no point the filter accepts: a locally
+    # infeasible problem, or a restoration that failed (``Solution.violation`` says how far from
+    # feasible it stopped; with the restoration phase turned off, a line search that failed).
     INFEASIBLE = 5
     INTERRUPTED = 6  # stopped by the user (Ctrl-C) between iterations; the last iterate is returned
     TIME_LIMIT = 7  # stopped when its time budget ran out, between iterations; the last iterate is returned
@@ -67,8 +69,9 @@ class Status(enum.IntEnum):
             Status.STALLED: "stalled: feasible, but no acceptable step improves the objective",
             Status.NAN: "a non-finite value appeared; returned the last finite iterate",
             Status.RUNNING: "running",
-            Status.INFEASIBLE: "infeasible: no acceptable step found with the constraint violation above tolerance "
-                               "(locally infeasible, or the line search failed; see the violation)",
+            Status.INFEASIBLE: "infeasible: the restoration phase found no acceptable point with the constraint "
+                               "violation above tolerance (locally infeasible, or the restoration failed; see the "
+                               "violation)",
             Status.INTERRUPTED: "interrupted before converging; returned the last iterate",
             Status.TIME_LIMIT: "stopped when the time budget ran out, before converging; returned the last iterate",
         }[self]
@@ -85,12 +88,19 @@ class Options:
     parameter μ; barrier_factor, barrier_power: μ ← min(factor μ, μ^power) once the barrier
     problem is solved to barrier_tolerance_factor × μ; dual_regularisation: δ = 1/ρ of the
     equality rows; line_search_steps: backtracking halvings; max_gradient: scaling target;
-    max_rejections: consecutive rejected steps before ``INFEASIBLE`` (violation above tolerance)
-    or ``STALLED``; max_filter_resets: how often, per barrier parameter, a step that only the
+    max_rejections: consecutive rejected steps before the restoration phase (violation above
+    tolerance) or ``STALLED``; max_filter_resets: how often, per barrier parameter, a step that only the
     filter rejected empties the filter (IPOPT's filter reset heuristic); max_soft_steps: how many
     consecutive iterations may take a soft-restoration step (IPOPT's: when the line search
     rejects every trial, the step to the fraction-to-boundary length is taken if it cuts the
     primal–dual error of the barrier problem by 0.9999; 0 turns it off);
+    max_restoration_iterations: iterations of one restoration phase before ``INFEASIBLE`` (0
+    turns the phase off: then ``max_rejections`` rejected steps far from feasible end the solve
+    ``INFEASIBLE``); ipopt_slacks: treat the inequality rows' slacks as IPOPT does: they start
+    at the rows' values at the starting point pushed inside its bounds (off: at the guess
+    itself), and δ_w regularises them as it does (Z, θ) (off: (Z, θ) only). With it the steps
+    follow IPOPT's (session 24) and the published walk-to-fly converges (session 25), but
+    take-off lands on an optimum that fails ``validate`` (README, "Results");
     progress: called on the host after every iteration as progress(iteration, record) with
     record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
     """
@@ -110,6 +120,8 @@ class Options:
     max_filter_resets: int = 5
     max_soft_steps: int = 10
     bound_push: float = 1e-2
+    max_restoration_iterations: int = 100
+    ipopt_slacks: bool = False
     progress: Callable | None = None
 
 
@@ -134,7 +146,8 @@ class Multipliers:
     transition_inequality: jax.Array
 
 
-HISTORY_COLUMNS = ("objective", "violation", "stationarity", "barrier", "step_length", "regularisation", "linear_solves")
+HISTORY_COLUMNS = ("objective", "violation", "stationarity", "barrier", "step_length", "regularisation", "linear_solves",
+                   "restoration")
 
 
 @jax.tree_util.register_dataclass
@@ -143,7 +156,9 @@ class Solution:
     """Result of a solve: the optimum (scaled NLP variables), multipliers, why it stopped and
     statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 7) has one row per
     iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected; linear
-    solves: block solves with the factor, refinements and second-order corrections included);
+    solves: block solves with the factor, refinements and second-order corrections included;
+    restoration: 1 in an iteration of the restoration phase, whose regularisation is its damping ζ,
+    0 otherwise);
     rows past ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations).
     ``bound_multipliers`` (lower, upper), each a tuple over (Z, θ, path slacks, transition
     slacks) in the solver's scaling, are for warm starts. ``slacks`` (path, transition): the
@@ -267,6 +282,25 @@ def _fraction_to_boundary(values, steps, tau):
     return alpha
 
 
+def _condensed_solve(chol, J, weights, inv_sigma, free, K, ax, a_s, a_c):
+    """The regularised KKT system [H + Σ, Jᵀ; J, −diag(1/weights)] with right-hand sides ax
+    (dual rows of (Z, θ)), a_s (dual rows of the slacks) and a_c (constraint rows), by condensing
+    onto ``chol``, the block-tridiagonal factor of H + Σ + Jᵀ diag(weights) J (slacks eliminated
+    row by row with ``inv_sigma`` = 1/(their diagonal)): returns (dx, ds, dy). ``free``: masks
+    (0 where fixed) of Z and θ."""
+    fz, ft = free
+    shifts = a_c[:2] + tuple(ag + a * i for ag, a, i in zip(a_c[2:], a_s, inv_sigma))
+    rz, rt = ax
+    for r, w, sh in zip(J, weights, shifts):
+        pz, pt = rows.pull(r, w * sh, K)
+        rz, rt = rz + pz, rt + pt
+    dz, dt = linalg.solve(chol, rz * fz, rt * ft)
+    dz, dt = dz * fz, dt * ft
+    dy = tuple(w * (rows.apply(r, dz, dt) - sh) for r, w, sh in zip(J, weights, shifts))
+    ds = tuple((a + dv) * i for a, dv, i in zip(a_s, dy[2:], inv_sigma))
+    return (dz, dt), ds, dy
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class State:
@@ -296,6 +330,9 @@ class State:
     scaling: tuple  # (cost factor, per-row factors of the four groups)
     theta_max: jax.Array  # the filter's envelope on the infeasibility, from the starting point
     theta_min: jax.Array  # infeasibility below which Armijo steps on the barrier function may be taken
+    restoring: jax.Array  # in the restoration phase
+    restoration_theta: jax.Array  # infeasibility where the restoration phase started
+    restoration_iterations: jax.Array  # iterations of the current restoration phase
 
 
 FILTER_SIZE = 128
@@ -304,6 +341,10 @@ REFINEMENT_STEPS = 10  # most refinements of a step towards the exact KKT system
 # stops falling by 10 %). 1e-14 (until session 22) cost 8–10 solves per iteration on take-off
 # N = 70 for no fewer iterations: 1e-10 took 496 iterations in 125 s there against 631 in 206 s.
 REFINEMENT_RATIO = 1e-10
+# The restoration phase minimises ½‖c‖² + (μ / RESTORATION_PENALTY) × barrier: IPOPT's weighs its
+# ℓ1 infeasibility by ρ = 1000 against the barrier and its proximal term. (With μ itself, the
+# barrier held walk-to-fly N = 20 at a violation of 0.5.)
+RESTORATION_PENALTY = 1000.0
 SOC_STEPS = 4  # second-order corrections per iteration (IPOPT's max_soc)
 
 
@@ -368,6 +409,8 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     scaling = _scaling(nlp, Z0, theta0, options) if scaling is None else (scaling[0], tuple(scaling[1]))
     cost_scale, row_scale = scaling
     _, bounds, evaluate = _frame(nlp, scaling)
+    if options.ipopt_slacks:  # the rows at the point the solve starts from, as IPOPT's slacks
+        Z0, theta0 = _interior((Z0, theta0), bounds, options.bound_push)
     r0 = stagewise.residuals(nlp, Z0, theta0)
     P0 = _interior((Z0, theta0, r0.path_inequality * row_scale[2], r0.transition_inequality * row_scale[3]), bounds,
                    options.bound_push)
@@ -393,6 +436,8 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         stationarity=jnp.asarray(jnp.inf, dtype),
         history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
         scaling=scaling, theta_max=1e4 * envelope, theta_min=1e-4 * envelope,
+        restoring=jnp.asarray(False), restoration_theta=jnp.asarray(0.0, dtype),
+        restoration_iterations=jnp.asarray(0),
     )
     # No weak types: a cold start (θ0 from Python floats) and a warm one must give the same avals,
     # so that one compiled ``advance`` serves both.
@@ -442,13 +487,123 @@ def advance(nlp, state, options=Options(), until=None):
         dual = _tmap(lambda g, a, b, f: jnp.where(f, g - a + b, 0.0), grad, zl, zu, bounds.free)
         return primal_dual_error(dual, c, complementarity(*_distances(P, bounds), zl, zu, mu))
 
+    def jacobian_rows(B):
+        """The constraint rows' Jacobian blocks in the solver's units (inequality rows that
+        constrain nothing left out)."""
+        J = tuple(rows.scaled(rows.group_rows(B, g, supports.get(g)), s) for g, s in zip(GROUPS, row_scale))
+        return J[:2] + tuple(rows.scaled(r, a) for r, a in zip(J[2:], active))
+
+    def restoration(state, B):
+        """One iteration of the restoration phase: a primal–dual step on ½‖c‖² + μ_R × barrier
+        (μ_R = μ / RESTORATION_PENALTY, the cost left out) with the Gauss–Newton Hessian JᵀJ,
+        damped by ζ D² (ζ = √μ_R, D = min(1, 1/|P|), IPOPT's proximal weights), and a
+        backtracking Armijo search. The phase ends, as IPOPT's, at a point that the filter
+        (which holds the point the phase started from) accepts and whose infeasibility ‖c‖₁
+        is at most 0.9 of that point's; it fails (status ``INFEASIBLE``) when no step
+        decreases its measure (a locally infeasible point) or after
+        ``max_restoration_iterations``. Back in the barrier problem the constraint multipliers
+        start from 0 (IPOPT's default) and the bound multipliers on its central path (μ / distance)."""
+        P, zl, zu = state.P, state.zl, state.zu
+        mu = state.mu / RESTORATION_PENALTY
+        _, c, _ = evaluate(P)
+        J = jacobian_rows(B)
+        dl, du = _distances(P, bounds)
+        zeta = jnp.sqrt(mu)
+        D2 = _tmap(lambda r, f: jnp.where(f, jnp.minimum(1.0, 1.0 / jnp.maximum(jnp.abs(r), 1e-300)) ** 2, 0.0),
+                   P, bounds.free)
+        sigma = _tmap(lambda a, b, p, q, ml, mu_: jnp.where(ml, p / a, 0.0) + jnp.where(mu_, q / b, 0.0),
+                      dl, du, zl, zu, bounds.has_lower, bounds.has_upper)
+        bgrad = _tmap(lambda a, b, ml, mu_: jnp.where(ml, -mu / a, 0.0) + jnp.where(mu_, mu / b, 0.0),
+                      dl, du, bounds.has_lower, bounds.has_upper)
+        rx = _tmap(lambda b, f: jnp.where(f, b, 0.0), bgrad, bounds.free)
+        inv_sigma = tuple(jnp.where(s > 0, 1.0 / jnp.where(s > 0, s + zeta * d, 1.0), 0.0) for s, d in zip(sigma[2:], D2[2:]))
+        # The rows enter with weight 1: [H Jᵀ; J −I] is the Gauss–Newton system of ½‖c‖².
+        weights = (jnp.ones_like(c[0]), jnp.ones_like(c[1])) + tuple(
+            jnp.where(a, 1.0 / (i + 1.0), 0.0) for i, a in zip(inv_sigma, active))
+        D, L, Bd, C = rows.add(*(rows.gram(r, w, K) for r, w in zip(J, weights)))
+        D = fz[:, :, None] * (D + jax.vmap(jnp.diag)(sigma[0] + zeta * D2[0])) * fz[:, None, :] + jax.vmap(jnp.diag)(fixed_z)
+        C = ft[:, None] * (C + jnp.diag(sigma[1] + zeta * D2[1])) * ft[None, :] + jnp.diag(fixed_t)
+        chol = linalg.factor(D, fz[1:, :, None] * L * fz[:-1, None, :], fz[:, :, None] * Bd * ft[None, None, :], C,
+                             coupled=coupled)
+        dx, ds, _ = _condensed_solve(chol, J, weights, inv_sigma, (fz, ft), K,
+                                     (-rx[0], -rx[1]), (-rx[2], -rx[3]), tuple(-v for v in c))
+        dP = dx + ds
+        tau = jnp.maximum(0.99, 1.0 - mu)
+        dzl = _tmap(lambda a, p, d, m: jnp.where(m, mu / a - p - p * d / a, 0.0), dl, zl, dP, bounds.has_lower)
+        dzu = _tmap(lambda b, q, d, m: jnp.where(m, mu / b - q + q * d / b, 0.0), du, zu, dP, bounds.has_upper)
+        alpha_max = _fraction_to_boundary(
+            dl + du, _tmap(lambda d, m: jnp.where(m, d, 0.0), dP, bounds.has_lower)
+            + _tmap(lambda d, m: jnp.where(m, -d, 0.0), dP, bounds.has_upper), tau)
+        alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
+
+        def merit(Pt):
+            _, ct, _ = evaluate(Pt)
+            return 0.5 * sum(jnp.sum(v * v) for v in ct) + _barrier(Pt, bounds, mu)
+
+        psi0 = merit(P)
+        linear = tuple(rows.apply(r, *dx) for r in J)
+        linear = linear[:2] + tuple(jnp.where(a, v - d, 0.0) for v, d, a in zip(linear[2:], ds, active))
+        slope = _dot(c, linear) + _dot(bgrad, dP)
+
+        def shorter(carry):
+            alpha, _, count = carry
+            alpha = 0.5 * alpha
+            return alpha, merit(_tmap(lambda p, d: p + alpha * d, P, dP)), count + 1
+
+        def searching(carry):
+            # ``state.restoring``: under vmap both branches run, and instances outside the phase
+            # must not keep the search going.
+            alpha, psi, count = carry
+            return (state.restoring & ~(psi - psi0 - 1e-4 * alpha * slope <= _rounding(dtype) * jnp.abs(psi0))
+                    & (count < options.line_search_steps))
+
+        psi1 = merit(_tmap(lambda p, d: p + alpha_max * d, P, dP))
+        alpha, psi, _ = jax.lax.while_loop(searching, shorter, (alpha_max, psi1, jnp.asarray(0)))
+        found = chol.ok & (slope < 0) & jnp.isfinite(psi) & (psi - psi0 - 1e-4 * alpha * slope <= _rounding(dtype) * jnp.abs(psi0))
+        step = jnp.where(found, alpha, 0.0)
+        step_z = jnp.where(found, alpha_z, 0.0)
+        P_new = _tmap(lambda p, d: p + step * d, P, dP)
+        dl_new, du_new = _distances(P_new, bounds)
+        zl_new = _tmap(lambda z, d, a, m: jnp.where(m, jnp.clip(z + step_z * d, mu / (1e10 * a), 1e10 * mu / a), 0.0),
+                       zl, dzl, dl_new, bounds.has_lower)
+        zu_new = _tmap(lambda z, d, b, m: jnp.where(m, jnp.clip(z + step_z * d, mu / (1e10 * b), 1e10 * mu / b), 0.0),
+                       zu, dzu, du_new, bounds.has_upper)
+        f_new, c_new, r_new = evaluate(P_new)
+        theta_new = _infeasibility(c_new)
+        phi_new = f_new + _barrier(P_new, bounds, state.mu)
+        done = found & (theta_new <= 0.9 * state.restoration_theta) & ~_in_filter(
+            theta_new, phi_new, state.filter_theta, state.filter_phi)
+        count = state.restoration_iterations + 1
+        failed = ~done & (~found | (count >= options.max_restoration_iterations))
+        v_new, _ = violation(nlp, P_new[0], P_new[1])
+        status = jnp.where(failed, int(Status.INFEASIBLE), int(Status.RUNNING))
+        # Back in the barrier problem, the bound multipliers start on its central path.
+        zl_new = _tmap(lambda z, a, m: jnp.where(done & m, state.mu / a, z), zl_new, dl_new, bounds.has_lower)
+        zu_new = _tmap(lambda z, b, m: jnp.where(done & m, state.mu / b, z), zu_new, du_new, bounds.has_upper)
+        record = jnp.stack([r_new.cost, v_new, state.stationarity, state.mu, step, zeta, 1.0, 1.0])
+        if options.progress is not None:
+            jax.debug.callback(options.progress, state.iterations, record)
+        return dataclasses.replace(
+            state, P=P_new, zl=zl_new, zu=zu_new,
+            y=jax.tree.map(lambda v: jnp.where(done, 0.0, v), state.y),
+            restoring=~done, restoration_iterations=count, status=status, violation=v_new,
+            # The regularisation escalated by the rejected steps before the phase is forgotten.
+            soft_steps=jnp.asarray(0), rejections=jnp.asarray(0), forced=jnp.zeros_like(state.forced),
+            regularisation=jnp.zeros_like(state.regularisation),
+            history=state.history.at[state.iterations].set(record), iterations=state.iterations + 1,
+        )
+
     def body(state):
+        B = stagewise.blocks(nlp, state.P[0], state.P[1])
+        if options.max_restoration_iterations == 0:
+            return newton(state, B)
+        return jax.lax.cond(state.restoring, restoration, newton, state, B)
+
+    def newton(state, B):
         P, y, zl, zu = state.P, state.y, state.zl, state.zu
         Z, theta = P[0], P[1]
-        B = stagewise.blocks(nlp, Z, theta)
         _, c, r_now = evaluate(P)
-        J = tuple(rows.scaled(rows.group_rows(B, g, supports.get(g)), s) for g, s in zip(GROUPS, row_scale))
-        J = J[:2] + tuple(rows.scaled(r, a) for r, a in zip(J[2:], active))
+        J = jacobian_rows(B)
         # Gradient of the Lagrangian f + yᵀc (bounds apart), per primal leaf.
         gz, gt = cost_scale * B.cost_z, cost_scale * B.cost_theta
         for r, yi in zip(J, y):
@@ -499,14 +654,28 @@ def advance(nlp, state, options=Options(), until=None):
         rx = _tmap(lambda g, b: g + b, grad, bgrad)  # the barrier problem's dual residual
         # Slacks eliminated row by row: dv = d_g (J dx + c_g + r_s / σ_s), ds = (dv − r_s) / σ_s.
         # Fixed slacks (equal bounds) and rows without bounds have σ = 0: their 1/σ is 0.
-        inv_sigma = tuple(jnp.where(s > 0, 1.0 / jnp.where(s > 0, s, 1.0), 0.0) for s in sigma[2:])
-        weight_g = tuple(jnp.where(a, 1.0 / (i + delta_c), 0.0) for i, a in zip(inv_sigma, active))
-        weights = (jnp.full_like(c[0], 1.0 / delta_c), jnp.full_like(c[1], 1.0 / delta_c)) + weight_g
+        # With ``ipopt_slacks`` δ_w regularises the slacks too (IPOPT's δ_s = δ_w): their 1/σ, and
+        # so the inequality rows' weights in the condensed matrix, depend on δ_w.
+        def slack_terms(delta):
+            """(1/(σ_s + δ) per slack, every row's weight in the condensed matrix)."""
+            inv = tuple(jnp.where(s > 0, 1.0 / jnp.where(s > 0, s + delta, 1.0), 0.0) for s in sigma[2:])
+            weight_g = tuple(jnp.where(a, 1.0 / (i + delta_c), 0.0) for i, a in zip(inv, active))
+            return inv, (jnp.full_like(c[0], 1.0 / delta_c), jnp.full_like(c[1], 1.0 / delta_c)) + weight_g
+
         lagrangian = rows.add(
             tuple(cost_scale * b for b in (B.cost_zz, jnp.zeros_like(B.cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta)),
             stagewise.constraint_curvature(nlp, Z, theta, *(yi * s for yi, s in zip(y, row_scale))),
         )
-        condensed = rows.add(lagrangian, *(rows.gram(r, w, K) for r, w in zip(J, weights)))
+        if options.ipopt_slacks:
+            equalities = rows.add(lagrangian, *(rows.gram(r, w, K) for r, w in zip(J[:2], slack_terms(0.0)[1][:2])))
+
+            def condensed(delta):
+                return rows.add(equalities, *(rows.gram(r, w, K) for r, w in zip(J[2:], slack_terms(delta)[1][2:])))
+        else:
+            everything = rows.add(lagrangian, *(rows.gram(r, w, K) for r, w in zip(J, slack_terms(0.0)[1])))
+
+            def condensed(delta):
+                return everything
 
         def regularised(hessian, delta):
             D, L, Bd, C = hessian
@@ -521,7 +690,7 @@ def advance(nlp, state, options=Options(), until=None):
         # ×8. (Starting from that third directly saves a factorisation but keeps the steps
         # damped: take-off N = 70 took 636 iterations instead of 435.)
         def attempt(delta):
-            chol = linalg.factor(*regularised(condensed, delta), coupled=coupled)
+            chol = linalg.factor(*regularised(condensed(delta), delta), coupled=coupled)
             return chol, chol.ok
 
         chol0, ok0 = attempt(state.forced)
@@ -540,21 +709,11 @@ def advance(nlp, state, options=Options(), until=None):
 
         delta_w, chol, factored = jax.lax.while_loop(needs_more, grow, (state.forced, chol0, ok0))
         hessian = regularised(lagrangian, delta_w)
+        delta_s = delta_w if options.ipopt_slacks else 0.0
+        inv_sigma, weights = slack_terms(delta_s)
 
         def kkt_solve(ax, a_s, a_c):
-            """The regularised (δ_c) KKT system with right-hand sides ax (dual rows of (Z, θ)),
-            a_s (dual rows of the slacks) and a_c (constraint rows), by condensing onto the
-            block-tridiagonal factor: returns (dx, ds, dy)."""
-            shifts = a_c[:2] + tuple(ag + a * i for ag, a, i in zip(a_c[2:], a_s, inv_sigma))
-            rz, rt = ax
-            for r, w, sh in zip(J, weights, shifts):
-                pz, pt = rows.pull(r, w * sh, K)
-                rz, rt = rz + pz, rt + pt
-            dz, dt = linalg.solve(chol, rz * fz, rt * ft)
-            dz, dt = dz * fz, dt * ft
-            dy = tuple(w * (rows.apply(r, dz, dt) - sh) for r, w, sh in zip(J, weights, shifts))
-            ds = tuple((a + dv) * i for a, dv, i in zip(a_s, dy[2:], inv_sigma))
-            return (dz, dt), ds, dy
+            return _condensed_solve(chol, J, weights, inv_sigma, (fz, ft), K, ax, a_s, a_c)
 
         def kkt_residual(ax, a_s, a_c, dx, ds, dy):
             """Residual of the exact KKT system (δ_c = 0) at the step (dx, ds, dy)."""
@@ -565,7 +724,8 @@ def advance(nlp, state, options=Options(), until=None):
             Jdx = tuple(rows.apply(r, *dx) for r in J)
             return (
                 ((ax[0] - hz) * fz, (ax[1] - ht) * ft),
-                tuple(jnp.where(i > 0, a - (sg * d - dv), 0.0) for a, sg, d, dv, i in zip(a_s, sigma[2:], ds, dy[2:], inv_sigma)),
+                tuple(jnp.where(i > 0, a - ((sg + delta_s) * d - dv), 0.0)
+                      for a, sg, d, dv, i in zip(a_s, sigma[2:], ds, dy[2:], inv_sigma)),
                 tuple(a - jd for a, jd in zip(a_c[:2], Jdx[:2]))
                 + tuple(jnp.where(act, a - (jd - d), 0.0) for a, jd, d, act in zip(a_c[2:], Jdx[2:], ds, active)),
             )
@@ -715,17 +875,25 @@ def advance(nlp, state, options=Options(), until=None):
         filter_count = filter_count + grow_filter.astype(filter_count.dtype)
         # No step accepted, but one the filter alone turned down (the iterate has wandered into a
         # pocket its own history fences in): empty the filter and retry the step (IPOPT's filter
-        # reset heuristic; IPOPT's restoration phase, which this solver has not, is the other way out).
+        # reset heuristic).
         unblock = factored & ~accepted & ~soft & blocked & (filter_resets < options.max_filter_resets)
         filter_theta = jnp.where(unblock, jnp.full_like(filter_theta, jnp.inf).at[0].set(state.theta_max), filter_theta)
         filter_phi = jnp.where(unblock, jnp.full_like(filter_phi, jnp.inf).at[0].set(-jnp.inf), filter_phi)
         filter_count = jnp.where(unblock, 1, filter_count)
         filter_resets = filter_resets + unblock.astype(filter_resets.dtype)
         moved = accepted | soft
-        rejections = jnp.where(moved | unblock, 0, state.rejections + 1)
+        # Steps rejected max_rejections times in a row, each retried with more regularisation,
+        # far from feasible: IPOPT's restoration phase, from here.
+        restore = (~moved & ~unblock & (state.rejections + 1 >= options.max_rejections)
+                   & (v_now > options.tolerance) & (options.max_restoration_iterations > 0))
+        slot = filter_count % FILTER_SIZE
+        filter_theta = jnp.where(restore, filter_theta.at[slot].set((1 - 1e-5) * theta0_), filter_theta)
+        filter_phi = jnp.where(restore, filter_phi.at[slot].set(phi0 - 1e-8 * theta0_), filter_phi)
+        filter_count = filter_count + restore.astype(filter_count.dtype)
+        rejections = jnp.where(moved | unblock | restore, 0, state.rejections + 1)
         v_new, _ = violation(nlp, P_new[0], P_new[1])
         record = jnp.stack([
-            stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w, solves,
+            stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w, solves, 0.0,
         ])
         status = jnp.where(
             converged, int(Status.CONVERGED),
@@ -736,18 +904,21 @@ def advance(nlp, state, options=Options(), until=None):
             P=P_new, y=y_new, zl=zl_new, zu=zu_new, mu=mu,
             regularisation=jnp.where(delta_w > 0, delta_w, state.regularisation),
             # A rejected step is retried from a more heavily regularised (shorter, steeper) one.
-            forced=jnp.where(moved | unblock, 0.0, jnp.maximum(delta_w * 100.0, 1e-4)),
+            forced=jnp.where(moved | unblock | restore, 0.0, jnp.maximum(delta_w * 100.0, 1e-4)),
             filter_theta=filter_theta, filter_phi=filter_phi, filter_count=filter_count, filter_resets=filter_resets,
             soft_steps=jnp.where(soft, soft_steps + 1, jnp.where(accepted, 0, soft_steps)),
             rejections=rejections, iterations=state.iterations + 1,
             barrier_updates=state.barrier_updates + updates, status=status, violation=v_new,
             stationarity=error0, history=state.history.at[state.iterations].set(record),
             scaling=state.scaling, theta_max=state.theta_max, theta_min=state.theta_min,
+            restoring=restore,
+            restoration_theta=jnp.where(restore, theta0_, state.restoration_theta),
+            restoration_iterations=jnp.asarray(0),
         )
         # Converged: keep the point where the test held, not the step taken from it.
         new = jax.tree.map(lambda a, b: jnp.where(converged, b, a), new, dataclasses.replace(
             state, status=status, stationarity=error0, iterations=state.iterations + 1,
-            history=state.history.at[state.iterations].set(jnp.stack([cost_now, v_now, error0, mu, 0.0, delta_w, 0.0]))))
+            history=state.history.at[state.iterations].set(jnp.stack([cost_now, v_now, error0, mu, 0.0, delta_w, 0.0, 0.0]))))
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves((new.P, new.y, new.zl, new.zu))]))
         new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
         if options.progress is not None:  # the row the history keeps for this iteration
