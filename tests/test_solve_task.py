@@ -8,6 +8,7 @@ CasADi reference) from the same guess must find no objective lower than ours by 
 an infeasible take-off must say so with finite numbers.
 """
 
+import dataclasses
 import logging
 
 import jax
@@ -48,6 +49,16 @@ def test_reduced_take_off_converges_and_passes_validate(take_off):
     history = np.asarray(result.solution.history)[: int(result.solution.iterations)]
     assert np.all(np.isfinite(history)) and np.all(np.isnan(np.asarray(result.solution.history)[int(result.solution.iterations):]))
 
+
+def test_reduced_take_off_with_ipopt_slacks_reaches_the_same_optimum(take_off):
+    """``Options(ipopt_slacks=True)`` (IPOPT's slacks: how the published walk-to-fly converges)
+    solves the reduced take-off to the default's optimum, and the answer passes ``validate``."""
+    task, default = take_off
+    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, ipopt_slacks=True)
+    result = solve_task(task, options=options)
+    assert result.status is ip.Status.CONVERGED, result.status.message
+    assert analysis.validate(task, result.trajectory).ok
+    assert float(result.solution.objective) == pytest.approx(float(default.solution.objective), rel=COMPARABLE)
 
 def test_a_time_budget_stops_the_take_off_on_its_path(take_off):
     """A budget of 1 ms: the first iteration (not counted), then one slice of one iteration, then

@@ -182,9 +182,10 @@ class Solution:
     scaling: tuple
 
 
-def violation(nlp, Z, theta):
-    """Max constraint violation over every group (the NLP's units) and per group."""
-    r = stagewise.residuals(nlp, Z, theta)
+def violation(nlp, Z, theta, r=None):
+    """Max constraint violation over every group (the NLP's units) and per group; ``r``: the
+    residuals at (Z, θ) when they are at hand."""
+    r = stagewise.residuals(nlp, Z, theta) if r is None else r
     groups = dict(
         path_equality=jnp.abs(r.path_equality),
         transition_equality=jnp.abs(r.transition_equality),
@@ -487,6 +488,25 @@ def advance(nlp, state, options=Options(), until=None):
         dual = _tmap(lambda g, a, b, f: jnp.where(f, g - a + b, 0.0), grad, zl, zu, bounds.free)
         return primal_dual_error(dual, c, complementarity(*_distances(P, bounds), zl, zu, mu))
 
+    def barrier_terms(dl, du, zl, zu, mu):
+        """(Σ, the primal–dual barrier Hessian, and the barrier gradient) per primal leaf, from
+        the distances to the bounds (dl, du) and the bound multipliers."""
+        sigma = _tmap(lambda a, b, p, q, ml, mu_: jnp.where(ml, p / a, 0.0) + jnp.where(mu_, q / b, 0.0),
+                      dl, du, zl, zu, bounds.has_lower, bounds.has_upper)
+        bgrad = _tmap(lambda a, b, ml, mu_: jnp.where(ml, -mu / a, 0.0) + jnp.where(mu_, mu / b, 0.0),
+                      dl, du, bounds.has_lower, bounds.has_upper)
+        return sigma, bgrad
+
+    def bound_steps(dl, du, zl, zu, dP, mu, tau):
+        """The bound multipliers' Newton steps (dzl, dzu) for the primal step dP, and the
+        fraction-to-boundary lengths (τ) of the primal and of the multiplier steps."""
+        dzl = _tmap(lambda a, p, d, m: jnp.where(m, mu / a - p - p * d / a, 0.0), dl, zl, dP, bounds.has_lower)
+        dzu = _tmap(lambda b, q, d, m: jnp.where(m, mu / b - q + q * d / b, 0.0), du, zu, dP, bounds.has_upper)
+        alpha_max = _fraction_to_boundary(
+            dl + du, _tmap(lambda d, m: jnp.where(m, d, 0.0), dP, bounds.has_lower)
+            + _tmap(lambda d, m: jnp.where(m, -d, 0.0), dP, bounds.has_upper), tau)
+        return dzl, dzu, alpha_max, _fraction_to_boundary(zl + zu, dzl + dzu, tau)
+
     def jacobian_rows(B):
         """The constraint rows' Jacobian blocks in the solver's units (inequality rows that
         constrain nothing left out)."""
@@ -505,16 +525,14 @@ def advance(nlp, state, options=Options(), until=None):
         start from 0 (IPOPT's default) and the bound multipliers on its central path (μ / distance)."""
         P, zl, zu = state.P, state.zl, state.zu
         mu = state.mu / RESTORATION_PENALTY
-        _, c, _ = evaluate(P)
+        now = evaluate(P)
+        c = now[1]
         J = jacobian_rows(B)
         dl, du = _distances(P, bounds)
         zeta = jnp.sqrt(mu)
         D2 = _tmap(lambda r, f: jnp.where(f, jnp.minimum(1.0, 1.0 / jnp.maximum(jnp.abs(r), 1e-300)) ** 2, 0.0),
                    P, bounds.free)
-        sigma = _tmap(lambda a, b, p, q, ml, mu_: jnp.where(ml, p / a, 0.0) + jnp.where(mu_, q / b, 0.0),
-                      dl, du, zl, zu, bounds.has_lower, bounds.has_upper)
-        bgrad = _tmap(lambda a, b, ml, mu_: jnp.where(ml, -mu / a, 0.0) + jnp.where(mu_, mu / b, 0.0),
-                      dl, du, bounds.has_lower, bounds.has_upper)
+        sigma, bgrad = barrier_terms(dl, du, zl, zu, mu)
         rx = _tmap(lambda b, f: jnp.where(f, b, 0.0), bgrad, bounds.free)
         inv_sigma = tuple(jnp.where(s > 0, 1.0 / jnp.where(s > 0, s + zeta * d, 1.0), 0.0) for s, d in zip(sigma[2:], D2[2:]))
         # The rows enter with weight 1: [H Jᵀ; J −I] is the Gauss–Newton system of ½‖c‖².
@@ -529,53 +547,55 @@ def advance(nlp, state, options=Options(), until=None):
                                      (-rx[0], -rx[1]), (-rx[2], -rx[3]), tuple(-v for v in c))
         dP = dx + ds
         tau = jnp.maximum(0.99, 1.0 - mu)
-        dzl = _tmap(lambda a, p, d, m: jnp.where(m, mu / a - p - p * d / a, 0.0), dl, zl, dP, bounds.has_lower)
-        dzu = _tmap(lambda b, q, d, m: jnp.where(m, mu / b - q + q * d / b, 0.0), du, zu, dP, bounds.has_upper)
-        alpha_max = _fraction_to_boundary(
-            dl + du, _tmap(lambda d, m: jnp.where(m, d, 0.0), dP, bounds.has_lower)
-            + _tmap(lambda d, m: jnp.where(m, -d, 0.0), dP, bounds.has_upper), tau)
-        alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
+        dzl, dzu, alpha_max, alpha_z = bound_steps(dl, du, zl, zu, dP, mu, tau)
 
-        def merit(Pt):
-            _, ct, _ = evaluate(Pt)
+        def merit(Pt, ct):
             return 0.5 * sum(jnp.sum(v * v) for v in ct) + _barrier(Pt, bounds, mu)
 
-        psi0 = merit(P)
+        def trial(alpha):
+            """(the measure, the cost, the scaled and the raw residuals) at the step α."""
+            Pt = _tmap(lambda p, d: p + alpha * d, P, dP)
+            f, ct, rt = evaluate(Pt)
+            return merit(Pt, ct), f, ct, rt
+
+        psi0 = merit(P, c)
         linear = tuple(rows.apply(r, *dx) for r in J)
         linear = linear[:2] + tuple(jnp.where(a, v - d, 0.0) for v, d, a in zip(linear[2:], ds, active))
         slope = _dot(c, linear) + _dot(bgrad, dP)
 
+        def sufficient(alpha, psi):
+            return psi - psi0 - 1e-4 * alpha * slope <= _rounding(dtype) * jnp.abs(psi0)
+
         def shorter(carry):
             alpha, _, count = carry
-            alpha = 0.5 * alpha
-            return alpha, merit(_tmap(lambda p, d: p + alpha * d, P, dP)), count + 1
+            return 0.5 * alpha, trial(0.5 * alpha), count + 1
 
         def searching(carry):
             # ``state.restoring``: under vmap both branches run, and instances outside the phase
             # must not keep the search going.
-            alpha, psi, count = carry
-            return (state.restoring & ~(psi - psi0 - 1e-4 * alpha * slope <= _rounding(dtype) * jnp.abs(psi0))
-                    & (count < options.line_search_steps))
+            alpha, (psi, _, _, _), count = carry
+            return state.restoring & ~sufficient(alpha, psi) & (count < options.line_search_steps)
 
-        psi1 = merit(_tmap(lambda p, d: p + alpha_max * d, P, dP))
-        alpha, psi, _ = jax.lax.while_loop(searching, shorter, (alpha_max, psi1, jnp.asarray(0)))
-        found = chol.ok & (slope < 0) & jnp.isfinite(psi) & (psi - psi0 - 1e-4 * alpha * slope <= _rounding(dtype) * jnp.abs(psi0))
+        alpha, (psi, f_new, c_new, r_new), _ = jax.lax.while_loop(
+            searching, shorter, (alpha_max, trial(alpha_max), jnp.asarray(0)))
+        found = chol.ok & (slope < 0) & jnp.isfinite(psi) & sufficient(alpha, psi)
         step = jnp.where(found, alpha, 0.0)
         step_z = jnp.where(found, alpha_z, 0.0)
         P_new = _tmap(lambda p, d: p + step * d, P, dP)
+        # Without a step the point stays and so do its residuals (``trial``'s are at the last α).
+        f_new, c_new, r_new = jax.tree.map(lambda a, b: jnp.where(found, a, b), (f_new, c_new, r_new), now)
         dl_new, du_new = _distances(P_new, bounds)
         zl_new = _tmap(lambda z, d, a, m: jnp.where(m, jnp.clip(z + step_z * d, mu / (1e10 * a), 1e10 * mu / a), 0.0),
                        zl, dzl, dl_new, bounds.has_lower)
         zu_new = _tmap(lambda z, d, b, m: jnp.where(m, jnp.clip(z + step_z * d, mu / (1e10 * b), 1e10 * mu / b), 0.0),
                        zu, dzu, du_new, bounds.has_upper)
-        f_new, c_new, r_new = evaluate(P_new)
         theta_new = _infeasibility(c_new)
         phi_new = f_new + _barrier(P_new, bounds, state.mu)
         done = found & (theta_new <= 0.9 * state.restoration_theta) & ~_in_filter(
             theta_new, phi_new, state.filter_theta, state.filter_phi)
         count = state.restoration_iterations + 1
         failed = ~done & (~found | (count >= options.max_restoration_iterations))
-        v_new, _ = violation(nlp, P_new[0], P_new[1])
+        v_new, _ = violation(nlp, P_new[0], P_new[1], r_new)
         status = jnp.where(failed, int(Status.INFEASIBLE), int(Status.RUNNING))
         # Back in the barrier problem, the bound multipliers start on its central path.
         zl_new = _tmap(lambda z, a, m: jnp.where(done & m, state.mu / a, z), zl_new, dl_new, bounds.has_lower)
@@ -646,11 +666,7 @@ def advance(nlp, state, options=Options(), until=None):
         soft_steps = jnp.where(reset, 0, state.soft_steps)
         tau = jnp.maximum(0.99, 1.0 - mu)
 
-        # Barrier Hessian Σ and barrier gradient per leaf.
-        sigma = _tmap(lambda a, b, p, q, ml, mu_: jnp.where(ml, p / a, 0.0) + jnp.where(mu_, q / b, 0.0),
-                      dl, du, zl, zu, bounds.has_lower, bounds.has_upper)
-        bgrad = _tmap(lambda a, b, ml, mu_: jnp.where(ml, -mu / a, 0.0) + jnp.where(mu_, mu / b, 0.0),
-                      dl, du, bounds.has_lower, bounds.has_upper)
+        sigma, bgrad = barrier_terms(dl, du, zl, zu, mu)
         rx = _tmap(lambda g, b: g + b, grad, bgrad)  # the barrier problem's dual residual
         # Slacks eliminated row by row: dv = d_g (J dx + c_g + r_s / σ_s), ds = (dv − r_s) / σ_s.
         # Fixed slacks (equal bounds) and rows without bounds have σ = 0: their 1/σ is 0.
@@ -754,12 +770,7 @@ def advance(nlp, state, options=Options(), until=None):
             refinements, (dx, ds, dy), _, _, _ = jax.lax.while_loop(
                 improving, refine, (0, step, residual, _max_abs(jax.tree.leaves(residual)), jnp.asarray(jnp.inf, dtype)))
             dP = dx + ds
-            dzl = _tmap(lambda a, p, d, m: jnp.where(m, mu / a - p - p * d / a, 0.0), dl, zl, dP, bounds.has_lower)
-            dzu = _tmap(lambda b, q, d, m: jnp.where(m, mu / b - q + q * d / b, 0.0), du, zu, dP, bounds.has_upper)
-            alpha_max = _fraction_to_boundary(
-                dl + du, _tmap(lambda d, m: jnp.where(m, d, 0.0), dP, bounds.has_lower)
-                + _tmap(lambda d, m: jnp.where(m, -d, 0.0), dP, bounds.has_upper), tau)
-            alpha_z = _fraction_to_boundary(zl + zu, dzl + dzu, tau)
+            dzl, dzu, alpha_max, alpha_z = bound_steps(dl, du, zl, zu, dP, mu, tau)
             return (dP, dy, dzl, dzu), alpha_max, alpha_z, 1 + refinements
 
         newton, alpha_max, alpha_z, solves = direction(c)
