@@ -22,7 +22,7 @@ refined towards the exact (δ = 0) KKT system, with the regularised factor as pr
 When the full step increases the infeasibility, IPOPT's second-order corrections are tried;
 when the line search rejects every trial, IPOPT's soft restoration (a step that reduces the
 barrier problem's primal–dual error) and its filter reset; and when steps keep being rejected
-far from feasibility, a restoration phase (IPOPT's, with a least-squares infeasibility measure:
+with the violation above tolerance, a restoration phase (IPOPT's, with a least-squares infeasibility measure:
 damped Gauss–Newton steps on ½‖c‖² within the bounds' barrier) until a point acceptable to the
 filter is found.
 
@@ -899,7 +899,7 @@ def advance(nlp, state, options=Options(), until=None):
         filter_resets = filter_resets + unblock.astype(filter_resets.dtype)
         moved = accepted | soft
         # Steps rejected max_rejections times in a row, each retried with more regularisation,
-        # far from feasible: IPOPT's restoration phase, from here.
+        # with the violation above tolerance: IPOPT's restoration phase, from here.
         restore = (~moved & ~unblock & (state.rejections + 1 >= options.max_rejections)
                    & (v_now > options.tolerance) & (options.max_restoration_iterations > 0))
         slot = filter_count % FILTER_SIZE
