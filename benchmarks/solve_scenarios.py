@@ -42,11 +42,17 @@ horizons (``tasks.with_intervals``) from its published guess, then the scenario 
 answer resampled to its knots; IPOPT still starts from the published guess. The iterations
 column then reads "coarse + fine"; compile and solve times count both levels.
 
+--ipopt-slacks solves with ``Options(ipopt_slacks=True)`` (the slacks' start and regularisation
+as IPOPT's), in every scenario or, given a comma-separated list, in those only: the per-scenario
+setting under which each published scenario converges and passes ``validate`` (README, session
+25) is ``--ipopt-slacks walk_to_fly,take_off_and_landing``. The rows it applies to are marked.
+
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.
 
 Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
        [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M] [--coarse NC]
+       [--ipopt-slacks [take_off,...]]
 """
 
 import os
@@ -136,6 +142,7 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
     guess = tasks.initial_guess(task)
     label = name if slack_penalty == "linear" else f"{name} ({slack_penalty} slacks)"
     label = label if coarse is None else f"{label}, from N = {coarse}"
+    label = f"{label}, ipopt_slacks" if options.ipopt_slacks else label
     row = dict(name=label, N=task.n_intervals, sizes=sizes(task, guess))
     log(f"{name} N = {task.n_intervals}: compiling our solve...")
     compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse)
@@ -229,6 +236,17 @@ def knot_study(counts, budget, repeats):
     return render(header, lines)
 
 
+def parse_names(parser, text, default):
+    """The scenario names of a comma-separated list (``-`` for ``_``), ``default`` if None."""
+    if text is None:
+        return default
+    names = [s.strip().replace("-", "_") for s in text.split(",") if s.strip()]
+    for name in names:
+        if name not in tasks.SCENARIOS:
+            parser.error(f"unknown scenario {name!r}; scenarios: {', '.join(tasks.SCENARIOS)}")
+    return names
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenarios", default=None,
@@ -241,21 +259,19 @@ def main():
     parser.add_argument("--max-iterations", type=int, default=None, help="iteration limit of both solvers")
     parser.add_argument("--slack-penalty", choices=tasks.SLACK_PENALTIES, default="linear",
                         help="penalty of the complementarity slacks: linear (the published runs, default) or squared (the paper's text)")
-    parser.add_argument("--ipopt-slacks", action="store_true",
-                        help="treat the slacks as IPOPT does (ip.Options.ipopt_slacks: their start and δ_w on them)")
+    parser.add_argument("--ipopt-slacks", nargs="?", const="all", default=None, metavar="SCENARIOS",
+                        help="treat the slacks as IPOPT does (ip.Options.ipopt_slacks: their start and δ_w on them) "
+                             "in every scenario, or only in these (comma-separated)")
     parser.add_argument("--coarse", type=int, default=None,
                         help="solve each scenario from the solution of its version on this many intervals (same horizons)")
     args = parser.parse_args()
 
     run_scenarios = args.scenarios is not None or args.knots is None
-    names = list(tasks.SCENARIOS) if args.scenarios is None else [s.strip().replace("-", "_") for s in args.scenarios.split(",") if s.strip()]
-    for name in names:
-        if name not in tasks.SCENARIOS:
-            parser.error(f"unknown scenario {name!r}; scenarios: {', '.join(tasks.SCENARIOS)}")
+    names = parse_names(parser, args.scenarios, default=list(tasks.SCENARIOS))
     options = optimise.DEFAULT_OPTIONS
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
-    options = dataclasses.replace(options, ipopt_slacks=args.ipopt_slacks)
+    slack_names = names if args.ipopt_slacks == "all" else parse_names(parser, args.ipopt_slacks, default=[])
 
     logging.getLogger("yourdfpy").setLevel(logging.ERROR)  # unresolved mesh files are irrelevant
     started = time.perf_counter()
@@ -269,7 +285,8 @@ def main():
                 urdf.flush()
             for name in names:
                 rows.append(run_scenario(
-                    name, args.knots_override, options, args.repeats, urdf.name if args.ipopt else None, args.max_iterations,
+                    name, args.knots_override, dataclasses.replace(options, ipopt_slacks=name in slack_names), args.repeats,
+                    urdf.name if args.ipopt else None, args.max_iterations,
                     args.slack_penalty, args.coarse,
                 ))
     knot_table = None
