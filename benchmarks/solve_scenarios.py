@@ -42,17 +42,17 @@ horizons (``tasks.with_intervals``) from its published guess, then the scenario 
 answer resampled to its knots; IPOPT still starts from the published guess. The iterations
 column then reads "coarse + fine"; compile and solve times count both levels.
 
---ipopt-slacks solves with ``Options(ipopt_slacks=True)`` (the slacks' start and regularisation
-as IPOPT's), in every scenario or, given a comma-separated list, in those only: the per-scenario
-setting under which each published scenario converges and passes ``validate`` (README, session
-25) is ``--ipopt-slacks walk_to_fly,take_off_and_landing``. The rows it applies to are marked.
+--ipopt-slacks solves with ``Options(ipopt_slacks=True)`` (δ_w regularises the slacks too, as
+IPOPT's δ_s = δ_w), in every scenario or, given a comma-separated list, in those only; the rows
+it applies to are marked. --slack-start guess starts the slacks at the rows' values at the guess
+itself instead of at the pushed guess (``Options.slack_start``, the default before session 26).
 
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.
 
 Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
        [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M] [--coarse NC]
-       [--ipopt-slacks [take_off,...]]
+       [--ipopt-slacks [take_off,...]] [--slack-start pushed|guess]
 """
 
 import os
@@ -143,6 +143,7 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
     label = name if slack_penalty == "linear" else f"{name} ({slack_penalty} slacks)"
     label = label if coarse is None else f"{label}, from N = {coarse}"
     label = f"{label}, ipopt_slacks" if options.ipopt_slacks else label
+    label = label if options.slack_start == ip.Options.slack_start else f"{label}, slacks from the {options.slack_start}"
     row = dict(name=label, N=task.n_intervals, sizes=sizes(task, guess))
     log(f"{name} N = {task.n_intervals}: compiling our solve...")
     compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse)
@@ -260,15 +261,18 @@ def main():
     parser.add_argument("--slack-penalty", choices=tasks.SLACK_PENALTIES, default="linear",
                         help="penalty of the complementarity slacks: linear (the published runs, default) or squared (the paper's text)")
     parser.add_argument("--ipopt-slacks", nargs="?", const="all", default=None, metavar="SCENARIOS",
-                        help="treat the slacks as IPOPT does (ip.Options.ipopt_slacks: their start and δ_w on them) "
+                        help="regularise the slacks as IPOPT does (ip.Options.ipopt_slacks: δ_w on them) "
                              "in every scenario, or only in these (comma-separated)")
+    parser.add_argument("--slack-start", choices=ip.SLACK_STARTS, default=ip.Options.slack_start,
+                        help="where the slacks start (ip.Options.slack_start): at the rows of the pushed guess "
+                             "(default, IPOPT's) or of the guess itself")
     parser.add_argument("--coarse", type=int, default=None,
                         help="solve each scenario from the solution of its version on this many intervals (same horizons)")
     args = parser.parse_args()
 
     run_scenarios = args.scenarios is not None or args.knots is None
     names = parse_names(parser, args.scenarios, default=list(tasks.SCENARIOS))
-    options = optimise.DEFAULT_OPTIONS
+    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, slack_start=args.slack_start)
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     slack_names = names if args.ipopt_slacks == "all" else parse_names(parser, args.ipopt_slacks, default=[])

@@ -52,8 +52,9 @@ def test_reduced_take_off_converges_and_passes_validate(take_off):
 
 @pytest.mark.slow
 def test_reduced_take_off_with_ipopt_slacks_reaches_the_same_optimum(take_off):
-    """``Options(ipopt_slacks=True)`` (IPOPT's slacks: how the published walk-to-fly converges)
-    solves the reduced take-off to the default's optimum, and the answer passes ``validate``.
+    """``Options(ipopt_slacks=True)`` (δ_w on the slacks too: IPOPT's treatment, with which
+    take-off-and-landing needs fewer iterations) solves the reduced take-off to the default's
+    optimum, and the answer passes ``validate``.
     Slow (``pytest -m slow``): with its compiled solve (a third in this worker) in the default
     run, the next test's compilation failed with LLVM's "Cannot allocate memory" (session 25)."""
     task, default = take_off

@@ -5,6 +5,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import interior_point as ip
@@ -174,21 +175,27 @@ def test_the_restoration_phase_leaves_the_infeasible_point_of_wachter_and_biegle
     assert not np.any(np.asarray(stuck.history)[: int(stuck.iterations), ip.HISTORY_COLUMNS.index("restoration")] == 1)
 
 
-def test_ipopt_slacks_start_at_the_rows_of_the_pushed_guess_and_reach_the_same_optimum():
-    """``Options.ipopt_slacks``: the slacks start at the rows' values at the guess pushed inside
-    its bounds (IPOPT's), not at the guess itself, and δ_w regularises them too; the optimum is
-    the same. Here the guess's u = 0.8 lies outside |u| ≤ 0.5: u² starts at 0.2401, not 0.64."""
+def test_slacks_start_at_the_rows_of_the_pushed_guess_and_every_slack_setting_reaches_the_same_optimum():
+    """``Options.slack_start``: ``"pushed"`` (default) starts the slacks at the rows' values at the
+    guess pushed inside its bounds (IPOPT's), ``"guess"`` at the guess itself; ``ipopt_slacks``
+    (δ_w on the slacks) does not change the start. Every combination reaches the same optimum.
+    Here the guess's u = 0.8 lies outside |u| ≤ 0.5: u² starts at 0.2401, not 0.64."""
     nlp = _integrator(CAPPED, u_max=0.5, energy_cap=1.0)
     Z0 = jnp.zeros((K, 3)).at[:, 2].set(0.8)
     solutions = []
-    for ipopt_slacks in (False, True):
-        options = dataclasses.replace(OPTIONS, ipopt_slacks=ipopt_slacks)
+    for slack_start, ipopt_slacks in (("guess", False), ("pushed", False), ("pushed", True)):
+        options = dataclasses.replace(OPTIONS, slack_start=slack_start, ipopt_slacks=ipopt_slacks)
         state = ip.start(nlp, Z0, jnp.zeros(1), options)
         rows_at_start = stagewise.residuals(nlp, state.P[0], state.P[1]).path_inequality * state.scaling[1][2]
-        assert np.allclose(state.P[2], rows_at_start, rtol=1e-12) == ipopt_slacks
+        assert np.allclose(state.P[2], rows_at_start, rtol=1e-12) == (slack_start == "pushed")
         solutions.append(solve(nlp, Z0, jnp.zeros(1), options=options))
         assert ip.Status(int(solutions[-1].status)) is ip.Status.CONVERGED
-    np.testing.assert_allclose(solutions[1].Z, solutions[0].Z, atol=1e-6)
+    for other in solutions[1:]:
+        np.testing.assert_allclose(other.Z, solutions[0].Z, atol=1e-6)
+    assert ip.Options().slack_start == "pushed"
+    with pytest.raises(ValueError, match="slack_start"):
+        ip.Options(slack_start="pushed inside")
+
 
 # Per-knot Rosenbrock (1 − x)² + 100 (y − x²)², with a different box on x at each knot.
 def _rosenbrock(a, z, theta, d):

@@ -77,6 +77,9 @@ class Status(enum.IntEnum):
         }[self]
 
 
+SLACK_STARTS = ("pushed", "guess")
+
+
 @dataclasses.dataclass(frozen=True)
 class Options:
     """Solver settings (static).
@@ -96,11 +99,14 @@ class Options:
     primal–dual error of the barrier problem by 0.9999; 0 turns it off);
     max_restoration_iterations: iterations of one restoration phase before ``INFEASIBLE`` (0
     turns the phase off: then ``max_rejections`` rejected steps far from feasible end the solve
-    ``INFEASIBLE``); ipopt_slacks: treat the inequality rows' slacks as IPOPT does: they start
-    at the rows' values at the starting point pushed inside its bounds (off: at the guess
-    itself), and δ_w regularises them as it does (Z, θ) (off: (Z, θ) only). With it the steps
-    follow IPOPT's (session 24) and the published walk-to-fly converges (session 25), but
-    take-off lands on an optimum that fails ``validate`` (README, "Results");
+    ``INFEASIBLE``); slack_start: where the inequality rows' slacks start: ``"pushed"`` (IPOPT's
+    rule, the default since session 26) at the rows' values at the starting point pushed inside
+    its bounds, ``"guess"`` at their values at the guess as given (the default before; with it
+    the published walk-to-fly does not converge); ipopt_slacks: δ_w regularises the slacks as it
+    does (Z, θ) (IPOPT's δ_s = δ_w; off: (Z, θ) only): with the pushed start, the slacks treated
+    as IPOPT treats them, whose steps ours then follow (session 24); take-off-and-landing
+    converges in fewer iterations with it, take-off lands on an optimum that fails ``validate``
+    (README, "Results");
     progress: called on the host after every iteration as progress(iteration, record) with
     record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
     """
@@ -121,17 +127,22 @@ class Options:
     max_soft_steps: int = 10
     bound_push: float = 1e-2
     max_restoration_iterations: int = 100
+    slack_start: str = "pushed"
     ipopt_slacks: bool = False
     progress: Callable | None = None
 
+    def __post_init__(self):
+        if self.slack_start not in SLACK_STARTS:
+            raise ValueError(f"Options.slack_start must be one of {SLACK_STARTS}, got {self.slack_start!r}")
+
 
 def iteration_options(options):
-    """``options`` with the settings only ``start`` reads (barrier0, bound_push, max_gradient)
-    at their defaults. ``advance`` gives the same result with either (tested), so one compiled
-    ``advance`` (options are static) serves every start that differs only there: a warm start's
-    barrier settings, say."""
+    """``options`` with the settings only ``start`` reads (barrier0, bound_push, max_gradient,
+    slack_start) at their defaults. ``advance`` gives the same result with either (tested), so
+    one compiled ``advance`` (options are static) serves every start that differs only there: a
+    warm start's barrier settings, say."""
     return dataclasses.replace(options, barrier0=Options.barrier0, bound_push=Options.bound_push,
-                               max_gradient=Options.max_gradient)
+                               max_gradient=Options.max_gradient, slack_start=Options.slack_start)
 
 
 @jax.tree_util.register_dataclass
@@ -410,7 +421,7 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     scaling = _scaling(nlp, Z0, theta0, options) if scaling is None else (scaling[0], tuple(scaling[1]))
     cost_scale, row_scale = scaling
     _, bounds, evaluate = _frame(nlp, scaling)
-    if options.ipopt_slacks:  # the rows at the point the solve starts from, as IPOPT's slacks
+    if options.slack_start == "pushed":  # the rows at the point the solve starts from, as IPOPT's slacks
         Z0, theta0 = _interior((Z0, theta0), bounds, options.bound_push)
     r0 = stagewise.residuals(nlp, Z0, theta0)
     P0 = _interior((Z0, theta0, r0.path_inequality * row_scale[2], r0.transition_inequality * row_scale[3]), bounds,
