@@ -5,6 +5,7 @@ frame (v_local = Rᵀṗ, ω_local = Rᵀω); ``PinocchioTwin.velocity`` convert
 rather than loosening any tolerance.
 """
 
+import gc
 import os
 import pathlib
 
@@ -138,6 +139,18 @@ def robot_pair(request):
 @pytest.fixture(scope="session")
 def ironcub():
     return jaxmm.load_ironcub()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _free_compiled_programs():
+    """Drop each test file's compiled programs when it ends. Every executable XLA's CPU backend
+    loads keeps thousands of memory mappings (one compiled iRonCub solve: ≈ 12,000), and a
+    process may hold 65,530 (Linux's default ``vm.max_map_count``): a worker that had run
+    several solver files failed to compile the next with LLVM's "Cannot allocate memory" and
+    died (sessions 25 and 26). Later files load what they need from the persistent cache."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 REDUCED_TAKE_OFF = dict(knots=14, min_dt=0.25, max_dt=0.5)
