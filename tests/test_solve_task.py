@@ -56,7 +56,8 @@ def test_reduced_take_off_with_ipopt_slacks_reaches_the_same_optimum(take_off):
     take-off-and-landing needs fewer iterations) solves the reduced take-off to the default's
     optimum, and the answer passes ``validate``.
     Slow (``pytest -m slow``): with its compiled solve (a third in this worker) in the default
-    run, the next test's compilation failed with LLVM's "Cannot allocate memory" (session 25)."""
+    run, the next test's compilation failed with LLVM's "Cannot allocate memory" (session 25: the
+    worker's memory mappings, see ``conftest._free_compiled_programs``)."""
     task, default = take_off
     options = dataclasses.replace(optimise.DEFAULT_OPTIONS, ipopt_slacks=True)
     result = solve_task(task, options=options)
