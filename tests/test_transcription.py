@@ -47,10 +47,14 @@ def test_block_jacobians_equal_dense_autodiff(name, options):
     Z, theta = _random_point(task, seed=1)
     K, nz = Z.shape
     ng = theta.shape[0]
-    B = jax.jit(stagewise.blocks)(nlp, Z, theta)  # the path rows through ``path_constraints``
-    both = jax.vmap(nlp.functions.path_constraints, in_axes=(None, 0, None))(nlp.args, Z, theta)
-    separate = stagewise.residuals(nlp, Z, theta)
-    assert np.array_equal(both[0], separate.path_equality) and np.array_equal(both[1], separate.path_inequality)
+    B = jax.jit(stagewise.blocks)(nlp, Z, theta)  # the path rows through ``path_jacobian``
+    # The generic route (``jax.jacfwd`` of each path function) gives the same blocks.
+    plain = dataclasses.replace(nlp, functions=dataclasses.replace(nlp.functions, path_jacobian=None))
+    generic = jax.jit(stagewise.blocks)(plain, Z, theta)
+    assert generic.path_linearisation is None and B.path_linearisation is not None
+    for name in ("path_equality_z", "path_equality_theta", "path_inequality_z", "path_inequality_theta"):
+        ours, expected = np.asarray(getattr(B, name)), np.asarray(getattr(generic, name))
+        assert np.abs(ours - expected).max() <= 1e-12 * max(1.0, np.abs(expected).max()), name
 
     def flat(w, group):
         return getattr(stagewise.residuals(nlp, w[: K * nz].reshape(K, nz), w[K * nz :]), group).reshape(-1)
@@ -188,8 +192,12 @@ def test_constraint_curvature_matches_jax_hessian(integration):
         nlp, functions=dataclasses.replace(nlp.functions, path_hessian=None, transition_curvature_columns=None))
     fast = jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y)
     reference = jax.jit(stagewise.constraint_curvature)(plain, Z, theta, *y)
-    for ours, expected in zip(fast, reference):
+    # With the kinematics and their Jacobian from the Jacobian pass (as the solver calls it).
+    linearisation = jax.jit(stagewise.blocks)(nlp, Z, theta).path_linearisation
+    shared = jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y, path_linearisation=linearisation)
+    for ours, reused, expected in zip(fast, shared, reference):
         assert np.abs(np.asarray(ours) - np.asarray(expected)).max() <= 1e-10 * max(1.0, np.abs(expected).max())
+        assert np.abs(np.asarray(reused) - np.asarray(expected)).max() <= 1e-10 * max(1.0, np.abs(expected).max())
 
     # And against the dense Hessian of Σ y·c over all of (Z, θ), cut into blocks.
     K, nz = Z.shape

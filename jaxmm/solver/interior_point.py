@@ -696,7 +696,8 @@ def advance(nlp, state, options=Options(), until=None):
 
         lagrangian = rows.add(
             tuple(cost_scale * b for b in (B.cost_zz, jnp.zeros_like(B.cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta)),
-            stagewise.constraint_curvature(nlp, Z, theta, *(yi * s for yi, s in zip(y, row_scale))),
+            stagewise.constraint_curvature(nlp, Z, theta, *(yi * s for yi, s in zip(y, row_scale)),
+                                           path_linearisation=B.path_linearisation),
         )
         if options.ipopt_slacks:
             equalities = rows.add(lagrangian, *(rows.gram(r, w, K) for r, w in zip(J[:2], slack_terms(0.0)[1][:2])))

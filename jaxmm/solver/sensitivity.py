@@ -333,7 +333,8 @@ def _kkt(nlp, Z, theta, y, barrier, options):
         jacobians.append(rows.scaled(r, scale))
     D, L, Bd, C = rows.add(
         (B.cost_zz, jnp.zeros_like(B.cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta),
-        stagewise.constraint_curvature(nlp, Z, theta, *(getattr(y, g) for g in GROUPS)),
+        stagewise.constraint_curvature(nlp, Z, theta, *(getattr(y, g) for g in GROUPS),
+                                       path_linearisation=B.path_linearisation),
     )
     masked = (
         free_z[:, :, None] * D * free_z[:, None, :],

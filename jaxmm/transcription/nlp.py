@@ -65,55 +65,85 @@ def _path_inequality(task, z, theta):
     return _concat(constraints.path_inequalities(task, _knot(task, z), theta[0]), constraints.PATH_INEQUALITIES)
 
 
-def _path_constraints(task, z, theta):
-    """Both path functions from one evaluation of the kinematics (and so, differentiated, one
-    kinematics Jacobian)."""
-    knot = _knot(task, z)
-    kinematics = constraints.knot_kinematics(task, knot.configuration)
-    return (_concat(constraints.path_equalities(task, knot, theta[0], kinematics), constraints.PATH_EQUALITIES),
-            _concat(constraints.path_inequalities(task, knot, theta[0], kinematics), constraints.PATH_INEQUALITIES))
+def _configuration(task, z):
+    return _knot(task, z).configuration
 
 
-def _path_hessian(task, z, theta, y_equality, y_inequality):
+def _kinematics_at(task, z):
+    """(the kinematics κ at q(z̃), their Jacobian ∂κ/∂q): what both path derivatives need."""
+    q0 = _configuration(task, z)
+    return constraints.knot_kinematics(task, q0), jax.jacfwd(constraints.knot_kinematics, argnums=1)(task, q0)
+
+
+def _linearised(task, z, linearisation, fn):
+    """fn(w, kinematics) as a function of w = (z̃', θ) with the kinematics linearised at z̃:
+    κ + ∂κ/∂q (q(z̃') − q(z̃)). Its first derivatives at (z̃, θ) are fn's exact ones."""
+    kin0, jacobian = linearisation
+    q0 = _configuration(task, z)
+
+    def at(w):
+        dq = _configuration(task, w[: z.shape[0]]) - q0
+        return fn(w, jax.tree.map(lambda k, J: k + J @ dq, kin0, jacobian))
+
+    return at
+
+
+def _path_rows(task, w, kinematics):
+    """(e, g) at w = (z̃, θ) (θ = (T_total,)) for the given kinematics."""
+    knot, total_time = _knot(task, w[:-1]), w[-1]
+    return (_concat(constraints.path_equalities(task, knot, total_time, kinematics), constraints.PATH_EQUALITIES),
+            _concat(constraints.path_inequalities(task, knot, total_time, kinematics), constraints.PATH_INEQUALITIES))
+
+
+def _path_jacobian(task, z, theta):
+    """Both path functions' Jacobians w.r.t. (z̃, θ) by the chain rule through the kinematics'
+    Jacobian (computed once, and returned for ``_path_hessian`` to reuse): the rows'
+    explicit derivatives with κ held fixed (cheap algebra, nz + ng tangents), plus, in q's
+    columns alone, their derivatives through κ (n_q tangents through the linearised
+    kinematics): ((e_z, e_θ), (g_z, g_θ), (κ, ∂κ/∂q))."""
+    nz = z.shape[0]
+    linearisation = _kinematics_at(task, z)
+    w0 = jnp.concatenate([z, theta])
+    explicit = jax.jacfwd(lambda w: _path_rows(task, w, linearisation[0]))(w0)
+    q = _configuration_columns(task.layout)
+    through = jax.jacfwd(lambda v: _linearised(task, z, linearisation, lambda w, kin: _path_rows(task, w0, kin))(
+        w0.at[q].set(v)))(w0[q])
+    e, g = (a.at[:, q].add(b) for a, b in zip(explicit, through))
+    return (e[:, :nz], e[:, nz:]), (g[:, :nz], g[:, nz:]), linearisation
+
+
+def _path_hessian(task, z, theta, y_equality, y_inequality, linearisation=None):
     """Hessian of y_e·e + y_g·g w.r.t. (z̃, θ), exact, by the chain rule through the kinematics κ(q):
     ``jax.hessian`` of the constraints with κ linearised at q (cheap algebra), plus Σ w ∇²κ with
     w = ∂(y·c)/∂κ, where only q's n_q tangents traverse the kinematics (``jax.hessian`` of the whole
-    knot would push all nz + ng of them through it)."""
+    knot would push all nz + ng of them through it). linearisation: (κ, ∂κ/∂q) at z̃ from
+    ``_path_jacobian`` (None: computed here)."""
     nz = z.shape[0]
     robot = task.robot
-
-    def configuration(z):
-        return _knot(task, z).configuration
+    linearisation = _kinematics_at(task, z) if linearisation is None else linearisation
 
     def weighted(w, kinematics):
-        knot, total_time = _knot(task, w[:nz]), w[nz]
-        equalities = constraints.path_equalities(task, knot, total_time, kinematics)
-        inequalities = constraints.path_inequalities(task, knot, total_time, kinematics)
-        return jnp.dot(y_equality, _concat(equalities, constraints.PATH_EQUALITIES)) + jnp.dot(
-            y_inequality, _concat(inequalities, constraints.PATH_INEQUALITIES)
-        )
-
-    q0 = configuration(z)
-    kin0 = constraints.knot_kinematics(task, q0)
-    jacobian = jax.jacfwd(constraints.knot_kinematics, argnums=1)(task, q0)
-
-    def linearised(w):
-        dq = configuration(w[:nz]) - q0
-        return weighted(w, jax.tree.map(lambda k, J: k + J @ dq, kin0, jacobian))
+        e, g = _path_rows(task, w, kinematics)
+        return jnp.dot(y_equality, e) + jnp.dot(y_inequality, g)
 
     w0 = jnp.concatenate([z, theta])
-    hessian = _hessian_over(linearised, w0, _path_curvature_columns(task.layout))
-    weights = jax.grad(weighted, argnums=1)(w0, kin0)
+    hessian = _hessian_over(_linearised(task, z, linearisation, weighted), w0, _path_curvature_columns(task.layout))
+    weights = jax.grad(weighted, argnums=1)(w0, linearisation[0])
     curvature = centroidal_kinematics_curvature(
-        robot.model, q0, robot.contact_frames + robot.jet_frames, weights
+        robot.model, _configuration(task, z), robot.contact_frames + robot.jet_frames, weights
     )
-    selection = jax.jacfwd(configuration)(z)  # q is linear in z̃
+    selection = jax.jacfwd(lambda z: _configuration(task, z))(z)  # q is linear in z̃
     return hessian.at[:nz, :nz].add(selection.T @ curvature @ selection)
 
 
 def _columns(layout, field, entries=slice(None), offset=0):
     block = layout.slices()[field]
     return offset + np.arange(block.start, block.stop)[entries]
+
+
+def _configuration_columns(layout):
+    """Flat columns of z̃ that hold q = (p, ρ, s)."""
+    return np.concatenate([_columns(layout, f) for f in ("base_position", "base_quaternion", "joint_positions")])
 
 
 def _path_curvature_columns(layout):
@@ -194,7 +224,7 @@ FUNCTIONS = StagewiseFunctions(
     path_hessian=_path_hessian,
     transition_curvature_columns=_transition_curvature_columns,
     row_supports=_row_supports,
-    path_constraints=_path_constraints,
+    path_jacobian=_path_jacobian,
 )
 
 

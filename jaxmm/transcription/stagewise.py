@@ -29,16 +29,20 @@ class StagewiseFunctions:
     knot_cost(args, z, θ, d) → (); global_cost(args, θ) → (); path_equality(args, z, θ) → (me,);
     transition_equality(args, z, z_next, θ) → (mt,); path_inequality(args, z, θ) → (mg,);
     transition_inequality(args, z, z_next, θ) → (mh,).
-    path_hessian (optional): (args, z, θ, y_e (me,), y_g (mg,)) → (nz + ng, nz + ng), the Hessian
-    of y_e·e + y_g·g w.r.t. (z, θ), for NLPs that know a faster way than ``jax.hessian``;
+    path_hessian (optional): (args, z, θ, y_e (me,), y_g (mg,), linearisation) → (nz + ng, nz + ng),
+    the Hessian of y_e·e + y_g·g w.r.t. (z, θ), for NLPs that know a faster way than
+    ``jax.hessian``; linearisation: what ``path_jacobian`` returned at (z, θ), or None (then
+    the function computes what it needs itself);
     knot_cost_hessian (optional): (args, z, θ, d) → (∂²φ/∂z² (nz, nz), ∂²φ/∂z∂θ (nz, ng),
     ∂²φ/∂θ² (ng, ng)), likewise;
     transition_curvature_columns (optional): (args) → the columns of (z_k, z_{k+1}) (a tuple of
     ints in 0..2 nz − 1, static: from args' static fields) in which the transition functions
     are nonlinear for a fixed θ; they must be linear in every other entry. The solver then
     takes their Hessian over those columns alone (and θ's rows by forward-over-reverse);
-    path_constraints (optional): (args, z, θ) → (e, g), both path functions at once, for NLPs
-    whose two share work (``blocks`` differentiates them in one pass);
+    path_jacobian (optional): (args, z, θ) → ((∂e/∂z, ∂e/∂θ), (∂g/∂z, ∂g/∂θ), linearisation):
+    both path functions' Jacobians from one pass, plus a pytree of what the path Hessian can
+    reuse at the same point (on a robot: the kinematics and their Jacobian, which the Hessian's
+    chain rule needs again), handed to ``path_hessian`` by the solver;
     row_supports (optional): (args) → {group: tuple of ``RowSupport``}, for each of the four
     constraint groups ("path_equality", …) a partition of its rows into consecutive runs with the
     columns of z_k (and z_{k+1}) they can depend on: the Jacobians' sparsity pattern, static
@@ -56,7 +60,7 @@ class StagewiseFunctions:
     knot_cost_hessian: Callable | None = None
     transition_curvature_columns: Callable | None = None
     row_supports: Callable | None = None
-    path_constraints: Callable | None = None
+    path_jacobian: Callable | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,7 +129,9 @@ class Blocks:
     cost_z (K, nz), cost_theta (ng,): cost gradient; cost_zz (K, nz, nz), cost_ztheta
     (K, nz, ng), cost_thetatheta (ng, ng): cost Hessian (the cost is knot-separable);
     for a path function p: p_z (K, m, nz), p_theta (K, m, ng); for a transition function t:
-    t_z (K − 1, m, nz) w.r.t. z_k, t_znext (K − 1, m, nz) w.r.t. z_{k+1}, t_theta (K − 1, m, ng).
+    t_z (K − 1, m, nz) w.r.t. z_k, t_znext (K − 1, m, nz) w.r.t. z_{k+1}, t_theta (K − 1, m, ng);
+    path_linearisation: ``StagewiseFunctions.path_jacobian``'s reusable part per knot (leading
+    axis K), for ``constraint_curvature`` at the same point; None without that function.
     """
 
     cost_z: jax.Array
@@ -143,6 +149,7 @@ class Blocks:
     transition_inequality_z: jax.Array
     transition_inequality_znext: jax.Array
     transition_inequality_theta: jax.Array
+    path_linearisation: Any = None
 
 
 def residuals(nlp, Z, theta):
@@ -164,16 +171,17 @@ def blocks(nlp, Z, theta):
     """Block Jacobians of every constraint and the cost's gradient and Hessian blocks.
 
     Per-knot ``jax.jacfwd`` vmapped over the knots: no dense Jacobian is ever formed. The
-    path equalities and inequalities are differentiated in one pass (through
-    ``StagewiseFunctions.path_constraints`` when given), so what they share can be computed
-    once (on a robot, the kinematics and their Jacobian).
+    path equalities and inequalities come from ``StagewiseFunctions.path_jacobian`` when given
+    (one pass for both, and what the path Hessian can reuse kept in ``path_linearisation``).
     """
     f, a = nlp.functions, nlp.args
 
-    def path_constraints(args, z, theta):
-        if f.path_constraints is not None:
-            return f.path_constraints(args, z, theta)
-        return f.path_equality(args, z, theta), f.path_inequality(args, z, theta)
+    def path_jacobian(args, z, theta):
+        if f.path_jacobian is not None:
+            return f.path_jacobian(args, z, theta)
+        e_z, e_theta = jax.jacfwd(f.path_equality, argnums=(1, 2))(args, z, theta)
+        g_z, g_theta = jax.jacfwd(f.path_inequality, argnums=(1, 2))(args, z, theta)
+        return (e_z, e_theta), (g_z, g_theta), None
 
     def transition(fn):
         return jax.vmap(jax.jacfwd(fn, argnums=(1, 2, 3)), in_axes=(None, 0, 0, None))(a, Z[:-1], Z[1:], theta)
@@ -187,8 +195,7 @@ def blocks(nlp, Z, theta):
         cost_zz, cost_ztheta, cost_thetatheta = jax.vmap(f.knot_cost_hessian, in_axes=(None, 0, None, 0))(
             a, Z, theta, nlp.knot_data)
     global_grad = jax.grad(f.global_cost, argnums=1)
-    (pe_z, pe_theta), (pi_z, pi_theta) = jax.vmap(jax.jacfwd(path_constraints, argnums=(1, 2)),
-                                                  in_axes=(None, 0, None))(a, Z, theta)
+    (pe_z, pe_theta), (pi_z, pi_theta), linearisation = jax.vmap(path_jacobian, in_axes=(None, 0, None))(a, Z, theta)
     te_z, te_znext, te_theta = transition(f.transition_equality)
     ti_z, ti_znext, ti_theta = transition(f.transition_inequality)
     return Blocks(
@@ -207,6 +214,7 @@ def blocks(nlp, Z, theta):
         transition_inequality_z=ti_z,
         transition_inequality_znext=ti_znext,
         transition_inequality_theta=ti_theta,
+        path_linearisation=linearisation,
     )
 
 
@@ -216,8 +224,11 @@ def row_supports(nlp):
     return {} if f is None else dict(f(nlp.args))
 
 
-def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path_inequality, transition_inequality):
-    """Blocks of Σ yᵢ ∇²cᵢ for the given multipliers (shaped like ``Residuals``' constraints).
+def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path_inequality, transition_inequality,
+                         path_linearisation=None):
+    """Blocks of Σ yᵢ ∇²cᵢ for the given multipliers (shaped like ``Residuals``' constraints);
+    path_linearisation: ``Blocks.path_linearisation`` at the same (Z, θ), for the NLP's
+    ``path_hessian`` to reuse (None: it computes what it needs).
 
     Returns (D (K, nz, nz) diagonal blocks, L (K − 1, nz, nz) sub-diagonal blocks ∂²/∂z_{k+1}∂z_k,
     B (K, nz, ng) knot–global blocks, C (ng, ng)).
@@ -230,7 +241,7 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
         raise ValueError(f"transition_curvature_columns must be distinct columns in 0..{2 * nz - 1}, "
                          f"got {columns.tolist()}")
 
-    def path_hessian(args, z, theta, y_e, y_g):
+    def path_hessian(args, z, theta, y_e, y_g, linearisation):
         def weighted(w):
             return jnp.sum(f.path_equality(args, w[:nz], w[nz:]) * y_e) + jnp.sum(
                 f.path_inequality(args, w[:nz], w[nz:]) * y_g
@@ -239,7 +250,8 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
         return jax.hessian(weighted)(jnp.concatenate([z, theta]))
 
     hessian = path_hessian if f.path_hessian is None else f.path_hessian
-    H = jax.vmap(hessian, in_axes=(None, 0, None, 0, 0))(a, Z, theta, path_equality, path_inequality)
+    H = jax.vmap(hessian, in_axes=(None, 0, None, 0, 0, None if path_linearisation is None else 0))(
+        a, Z, theta, path_equality, path_inequality, path_linearisation)
     D, B, C = H[:, :nz, :nz], H[:, :nz, nz:], jnp.sum(H[:, nz:, nz:], axis=0)
     interval = functools.partial(_transition_curvature, f, columns=columns)
     inner, mixed, corner = jax.vmap(interval, in_axes=(None, 0, 0, None, 0, 0))(
