@@ -13,11 +13,15 @@ A batch and a single solve round differently (batched and unbatched XLA kernels)
 the first iteration; the nonconvex iteration amplifies it (≈ 1e-10 after 40 iterations on the
 take-off, 4e-6 at iteration 17 of the standing task below), and over hundreds of iterations the
 two may stop a few iterations apart at points equal within the solver's stationarity tolerance.
-So the first ``EARLY`` iterations must agree to
+With the slacks starting at the pushed guess (the default since session 26) the early phase
+amplifies faster: at EARLY = 10 the two differed by 3.8e-8 at iteration 8 (session 27), and a
+rounding-level change of the solver made the batch refine one step once more than the single
+solve at iteration 6 (then 1.2e-6 apart). So the first ``EARLY`` iterations must agree to
 ``SAME_PATH`` and the answers to ``SAME_ANSWER``.
 """
 
 import dataclasses
+import gc
 
 import jax
 import jax.numpy as jnp
@@ -33,10 +37,22 @@ from conftest import REDUCED_TAKE_OFF
 
 # The final CoM 5 m up with 1 N jets in 0.14 s: infeasible (tests/test_solve_task.py).
 INFEASIBLE = dict(knots=14, min_dt=0.01, max_dt=0.01, final_com=(0.0, 0.0, 5.57), max_thrust=(1.0, 1.0, 1.0, 1.0))
-EARLY = 10  # iterations over which a batch and a single solve follow the same path
+EARLY = 5  # iterations over which a batch and a single solve follow the same path
 SAME_PATH = 1e-8  # relative, on every history column over the first EARLY iterations
 SAME_ANSWER = 1e-4  # relative objective: the solver's stationarity tolerance
 ROUNDING = 1e-14  # the same guess computed compiled and eagerly
+
+
+@pytest.fixture
+def _free_compiled_programs_after():
+    """For the tests that compile programs of their own (the sliced batches): this file's batch,
+    single solves and sliced batches kept together in one process passed ``vm.max_map_count``
+    (a ``pytest -m slow`` run died at the second sliced batch in session 27; see
+    tests/conftest.py). Not after every test: the sharing test counts the batch's compiled
+    programs."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +110,7 @@ def test_the_batch_equals_a_loop_of_single_solves(solved, singles):
         mine, single = batch.instance(solved, i), singles[i]
         assert float(mine.solution.objective) == pytest.approx(float(single.solution.objective), rel=SAME_ANSWER)
         assert float(mine.solution.violation) <= optimise.DEFAULT_OPTIONS.tolerance
-    assert float(solved.solution.violation[2]) > 1.0
+    assert float(solved.solution.violation[2]) > 0.05  # far from feasible (test_solve_task: the restoration's 0.42)
 
 
 @pytest.mark.slow
@@ -138,6 +154,7 @@ def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, probl
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("_free_compiled_programs_after")
 @pytest.mark.parametrize("vectorised", [True, False], ids=["vmap", "map"])
 def test_a_time_budget_stops_the_batch_on_its_path(problems, solved, vectorised):
     """A budget of 1 ms: every instance stops after two iterations (the first slice, then one)
