@@ -141,16 +141,21 @@ def ironcub():
     return jaxmm.load_ironcub()
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _free_compiled_programs():
-    """Drop each test file's compiled programs when it ends. Every executable XLA's CPU backend
-    loads keeps thousands of memory mappings (one compiled iRonCub solve: ≈ 12,000), and a
-    process may hold 65,530 (Linux's default ``vm.max_map_count``): a worker that had run
-    several solver files failed to compile the next with LLVM's "Cannot allocate memory" and
-    died (sessions 25 and 26). Later files load what they need from the persistent cache."""
-    yield
+def free_compiled_programs():
+    """Drop the process's compiled programs. Every executable XLA's CPU backend loads keeps
+    thousands of memory mappings (one compiled iRonCub solve: ≈ 12,000), and a process may hold
+    65,530 (Linux's default ``vm.max_map_count``): a worker that had run several solver files
+    failed to compile the next with LLVM's "Cannot allocate memory" and died (sessions 25 and
+    26). What is needed later is loaded again from the persistent cache."""
     jax.clear_caches()
     gc.collect()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _free_compiled_programs():
+    """Each test file's compiled programs are dropped when it ends (``free_compiled_programs``)."""
+    yield
+    free_compiled_programs()
 
 
 REDUCED_TAKE_OFF = dict(knots=14, min_dt=0.25, max_dt=0.5)

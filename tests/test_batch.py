@@ -21,7 +21,6 @@ solve at iteration 6 (then 1.2e-6 apart). So the first ``EARLY`` iterations must
 """
 
 import dataclasses
-import gc
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +32,7 @@ from jaxmm import analysis, batch, optimise, tasks
 from jaxmm.solver import interior_point as ip
 from jaxmm.transcription.constraints import variable_bounds
 
-from conftest import REDUCED_TAKE_OFF
+from conftest import REDUCED_TAKE_OFF, free_compiled_programs
 
 # The final CoM 5 m up with 1 N jets in 0.14 s: infeasible (tests/test_solve_task.py).
 INFEASIBLE = dict(knots=14, min_dt=0.01, max_dt=0.01, final_com=(0.0, 0.0, 5.57), max_thrust=(1.0, 1.0, 1.0, 1.0))
@@ -47,12 +46,10 @@ ROUNDING = 1e-14  # the same guess computed compiled and eagerly
 def _free_compiled_programs_after():
     """For the tests that compile programs of their own (the sliced batches): this file's batch,
     single solves and sliced batches kept together in one process passed ``vm.max_map_count``
-    (a ``pytest -m slow`` run died at the second sliced batch in session 27; see
-    tests/conftest.py). Not after every test: the sharing test counts the batch's compiled
-    programs."""
+    (a ``pytest -m slow`` run died at the second sliced batch in session 27). Not after every
+    test: the sharing test counts the batch's compiled programs."""
     yield
-    jax.clear_caches()
-    gc.collect()
+    free_compiled_programs()
 
 
 @pytest.fixture(scope="module")
