@@ -116,3 +116,25 @@ def test_coupled_columns_out_of_range_are_refused():
     A, D, L, B, C = _random_system(3, 4, 1, seed=5)
     with pytest.raises(ValueError, match="coupled columns"):
         linalg.factor(D, L, B, C, coupled=(1, 4))
+
+
+@pytest.mark.parametrize("coupled", [None, (4, 1, 5)])
+def test_diagonal_shifts_added_as_factored(coupled):
+    """factor(D, …, shift=s, corner_shift=c) is factor(D + diag s, …, C + diag c) to the last bit,
+    with or without the coupled-columns reordering, and a shift that makes a block indefinite is
+    reported as such."""
+    K, n, m = 6, 6, 2
+    _, D, L, B, C = _random_system(K, n, m, seed=11)
+    if coupled is not None:
+        outside = np.setdiff1d(np.arange(n), coupled)
+        L = L.copy()
+        L[:, :, outside] = 0.0
+    rng = np.random.default_rng(3)
+    shift, corner = rng.uniform(0.1, 2.0, size=(K, n)), rng.uniform(0.1, 2.0, size=m)
+    shifted = linalg.factor(D, L, B, C, coupled=coupled, shift=shift, corner_shift=corner)
+    added = linalg.factor(D + np.stack([np.diag(v) for v in shift]), L, B, C + np.diag(corner), coupled=coupled)
+    for a, b in zip(jax.tree.leaves(shifted), jax.tree.leaves(added)):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    negative = shift.copy()
+    negative[3] -= 1e3
+    assert int(linalg.factor(D, L, B, C, coupled=coupled, shift=negative).factored) == 3

@@ -50,18 +50,19 @@ class BlockCholesky:
         return (self.factored == self.diagonal.shape[-3]) & jnp.all(jnp.isfinite(self.schur))
 
 
-def _factor_tridiagonal(D, L, order, s):
-    """Block Cholesky of the tridiagonal part with each knot's variables in the order ``order``
-    (static (n,) indices; None: as given), L's columns non-zero only in the last s of that
-    order (``coupled_order``): returns (Lc (K, n, n), W (K − 1, n, s), the number of diagonal
-    blocks factored before the first that is not positive definite), in that order."""
+def _factor_tridiagonal(D, L, order, s, shift):
+    """Block Cholesky of the tridiagonal part, D's diagonals plus ``shift`` (K, n), with each
+    knot's variables in the order ``order`` (static (n,) indices; None: as given), L's columns
+    non-zero only in the last s of that order (``coupled_order``): returns (Lc (K, n, n),
+    W (K − 1, n, s), the number of diagonal blocks factored before the first that is not
+    positive definite), in that order."""
     K, n = D.shape[:2]
     if order is None:
-        block, coupling = (lambda k: D[k]), (lambda k: L[k])
+        block, coupling = (lambda k: D[k] + jnp.diag(shift[k])), (lambda k: L[k])
     else:
         # Reordered block by block, in cache: reordering the (K, n, n) arrays up front cost
         # as much as the reordering saves (≈ 40 ms for 71 blocks of 178 × 178).
-        block = lambda k: _take(_take(D[k], order, 0), order, 1)  # noqa: E731
+        block = lambda k: _take(_take(D[k], order, 0), order, 1) + jnp.diag(shift[k][order])  # noqa: E731
         coupling = lambda k: _take(_take(L[k], order, 0), order[n - s :], 1)  # noqa: E731
 
     def running(carry):
@@ -133,21 +134,24 @@ def _take(x, indices, axis):
     return jnp.concatenate([jax.lax.slice_in_dim(x, a, b, axis=axis) for a, b in runs], axis=axis)
 
 
-def factor(D, L, B, C, coupled=None):
+def factor(D, L, B, C, coupled=None, shift=None, corner_shift=None):
     """Factor the bordered block-tridiagonal SPD matrix.
 
     D: (K, n, n) diagonal blocks; L: (K − 1, n, n) blocks below the diagonal (block (k+1, k));
     B: (K, n, m) border; C: (m, m). coupled (static, optional): the columns in which every L_k
-    can be non-zero (entries of L outside them are ignored: they must be 0). Returns a
-    ``BlockCholesky``.
+    can be non-zero (entries of L outside them are ignored: they must be 0). shift (K, n),
+    corner_shift (m,) (optional): added to the diagonals of D and C, block by block as they are
+    factored (an inertia correction's attempts then share one D). Returns a ``BlockCholesky``.
     """
     D, L, B, C = (jnp.asarray(a) for a in (D, L, B, C))
     n = D.shape[-1]
+    shift = jnp.zeros(D.shape[:2], D.dtype) if shift is None else jnp.asarray(shift)
+    C = C if corner_shift is None else C + jnp.diag(corner_shift)
     order, s = coupled_order(n, coupled)
     p = None if coupled is None else np.asarray(order)
     if p is not None:
         B = _take(B, p, 1)
-    Lc, W, factored = _factor_tridiagonal(D, L, p, s)
+    Lc, W, factored = _factor_tridiagonal(D, L, p, s, shift)
     K = D.shape[0]
     # A⁻¹ B only when every block was factored: an inertia correction's failed attempts (1.5 of
     # the 2.5 per iteration on take-off N = 70) then cost no solve.
