@@ -710,22 +710,18 @@ def advance(nlp, state, options=Options(), until=None):
             def condensed(delta):
                 return everything
 
-        def regularised(hessian, delta):
-            D, L, Bd, C = hessian
-            return (
-                fz[:, :, None] * (D + jax.vmap(jnp.diag)(sigma[0] + delta)) * fz[:, None, :] + jax.vmap(jnp.diag)(fixed_z),
-                fz[1:, :, None] * L * fz[:-1, None, :],
-                fz[:, :, None] * Bd * ft[None, None, :],
-                ft[:, None] * (C + jnp.diag(sigma[1] + delta)) * ft[None, :] + jnp.diag(fixed_t),
-            )
-
         def fixed_out(hessian):
-            """``regularised`` without Σ + δ_w, which ``linalg.factor`` adds block by block: the
-            same matrix to the last bit, and one pass over the blocks per iteration instead of one
-            per attempt (8 ms each at N = 70)."""
+            """The Newton matrix with the fixed variables' rows and columns out (1 on their
+            diagonal), without Σ + δ_w: ``linalg.factor`` adds those block by block, so an
+            inertia correction's attempts share one pass over the blocks (8 ms each at N = 70)."""
             D, L, Bd, C = hessian
             return (fz[:, :, None] * D * fz[:, None, :] + jax.vmap(jnp.diag)(fixed_z), fz[1:, :, None] * L * fz[:-1, None, :],
                     fz[:, :, None] * Bd * ft[None, None, :], ft[:, None] * C * ft[None, :] + jnp.diag(fixed_t))
+
+        def regularised(hessian, delta):
+            """``fixed_out`` with Σ + δ_w on the free variables' diagonal."""
+            D, L, Bd, C = fixed_out(hessian)
+            return (D + jax.vmap(jnp.diag)(fz * (sigma[0] + delta)), L, Bd, C + jnp.diag(ft * (sigma[1] + delta)))
 
         if not options.ipopt_slacks:
             unshifted = fixed_out(everything)
