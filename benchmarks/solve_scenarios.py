@@ -16,7 +16,9 @@ What is measured (wall clock):
   (N + 1) knots × knot size + T_total; equality and inequality rows from the shapes of
   ``stagewise.residuals``, each inequality row two-sided with its own bounds, variable boxes
   not counted), the barrier updates and Newton iterations, the mean block solves per iteration
-  (the solver history's ``linear_solves``: refinements, second-order corrections), the status, and
+  (the solver history's ``linear_solves``: refinements, second-order corrections) and
+  factorisations per iteration (its ``factorisations``: the inertia correction's attempts, a
+  failed one counted up to its first indefinite block), the status, and
   ``jaxmm.analysis.validate`` of the trajectory (its table is printed after the main table).
   The default solver tolerance is 1e-6 on the violation (``optimise.DEFAULT_OPTIONS``).
 * --ipopt: ``solve_ipopt(task, urdf, guess, tol=1e-4)`` (the paper's tolerance, physical units;
@@ -153,7 +155,8 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
         compile=compile_time, solve=solve_time, objective=objective, violation=violation,
         outer=int(result.solution.barrier_updates), inner=str(int(result.solution.iterations)) if rough is None
         else f"{int(rough.solution.iterations)} + {int(result.solution.iterations)}",
-        solves=block_solves_per_iteration(result.solution), status=result.status.message,
+        solves=per_iteration(result.solution, "linear_solves"),
+        factorisations=per_iteration(result.solution, "factorisations"), status=result.status.message,
         report=analysis.validate(task, result.trajectory),
     )  # fmt: skip
     if urdf_path is not None:
@@ -168,17 +171,20 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
     return row
 
 
-def block_solves_per_iteration(solution):
-    """Mean number of block solves (refinements, second-order corrections) per iteration."""
+def per_iteration(solution, column):
+    """Mean of a history column (``ip.HISTORY_COLUMNS``) over the iterations: "linear_solves" (block
+    solves: refinements, second-order corrections), "factorisations" (the inertia correction's
+    work, in whole factorisations)."""
     history = np.asarray(solution.history)[: int(solution.iterations)]
-    return float(np.mean(history[:, ip.HISTORY_COLUMNS.index("linear_solves")])) if len(history) else 0.0
+    return float(np.nanmean(history[:, ip.HISTORY_COLUMNS.index(column)])) if len(history) else 0.0
 
 
 def scenario_table(rows):
     header = ("scenario", "N", "variables", "equalities", "inequalities", "μ updates", "iterations", "solves / it.",
-              "compile", "solve", "objective", "max violation", "status", "validate")  # fmt: skip
+              "factorisations / it.", "compile", "solve", "objective", "max violation", "status", "validate")  # fmt: skip
     lines = [
         (r["name"], r["N"], *r["sizes"], r["ours"]["outer"], r["ours"]["inner"], f"{r['ours']['solves']:.1f}",
+         f"{r['ours']['factorisations']:.2f}",
          format_time(r["ours"]["compile"]), format_time(r["ours"]["solve"]), f"{r['ours']['objective']:.6g}",
          f"{r['ours']['violation']:.2e}", r["ours"]["status"], verdict(r["ours"]["report"]))
         for r in rows

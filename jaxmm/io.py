@@ -1,6 +1,6 @@
 """Saved solutions: a solved task written to one ``.npz`` file with a JSON header, and read back.
 
-The file (format ``jaxmm-solution``, version 3) holds NumPy arrays only (no pickles) and one
+The file (format ``jaxmm-solution``, version 4) holds NumPy arrays only (no pickles) and one
 JSON header ``__header__``:
 
 * ``format``, ``version``, ``jaxmm_version``, ``saved_at`` (UTC, ISO 8601);
@@ -14,9 +14,10 @@ JSON header ``__header__``:
   solver's ``Solution`` (scaled variables, multipliers, bound multipliers, history), enough to
   warm-start a new solve from the loaded result.
 
-Files of versions 1 (before the history recorded the linear solves of each iteration) and 2
-(before it marked the restoration phase's iterations) are read too: their history gets the
-missing columns as NaN.
+Files of versions 1 (before the history recorded the linear solves of each iteration), 2
+(before it marked the restoration phase's iterations) and 3 (before it recorded the
+factorisations of the inertia correction) are read too: their history gets the missing columns
+as NaN.
 
 Arrays are named by their path in the skeleton (``trajectory.knots.com``). Files are written
 atomically: a temporary file in the same directory, renamed over the target once complete.
@@ -40,8 +41,8 @@ from jaxmm.transcription.problem import Task, TaskParams, Weights
 from jaxmm.transcription.variables import Knot, Trajectory
 
 FORMAT = "jaxmm-solution"
-VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 _HEADER = "__header__"
 _CLASSES = {cls.__name__: cls for cls in (Trajectory, Knot, ip.Solution, ip.Multipliers, TaskParams, Weights)}
 

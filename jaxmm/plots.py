@@ -211,7 +211,7 @@ def plot_joints(task, trajectory, *, fig=None, columns=6, contact_height=CONTACT
 _HISTORY_LABELS = dict(
     objective="objective", violation="constraint violation", stationarity="stationarity (scaled)",
     barrier="barrier parameter μ", step_length="step length α", regularisation="regularisation δ_w",
-    linear_solves="block solves (refinement included)",
+    linear_solves="block solves (refinement included)", factorisations="factorisations (inertia correction)",
 )
 
 

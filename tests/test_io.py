@@ -54,10 +54,10 @@ def test_the_header_is_readable_without_jax(saved):
         assert "trajectory.knots.com" in data.files
 
 
-@pytest.mark.parametrize("version, missing", [(1, 2), (2, 1)])
+@pytest.mark.parametrize("version, missing", [(1, 3), (2, 2), (3, 1)])
 def test_an_older_file_is_read_with_its_history_missing_the_newer_columns(saved, tmp_path, version, missing):
-    """Files written before the history had its linear-solves (version 1) and restoration
-    (version 2) columns still load (and plot), those columns NaN."""
+    """Files written before the history had its linear-solves (version 1), restoration
+    (version 2) and factorisations (version 3) columns still load (and plot), those columns NaN."""
     path, _, result = saved
 
     def as_older(arrays):

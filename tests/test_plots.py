@@ -64,7 +64,7 @@ def result(trajectory):
     history[:iterations] = np.stack(
         [1e6 / (1 + steps), 10.0 ** -(steps / 6), 10.0 ** -(steps / 10), 0.1 * 0.2 ** (steps // 10),
          np.where(steps % 7 == 3, 0.0, 1.0), np.where(steps < 5, 1e-4, 0.0), np.where(steps < 20, 6.0, 3.0),
-         np.where((steps >= 12) & (steps < 15), 1.0, 0.0)], axis=1)
+         np.where((steps >= 12) & (steps < 15), 1.0, 0.0), np.where(steps < 5, 2.5, 1.0)], axis=1)
     solution = types.SimpleNamespace(history=history, iterations=iterations, objective=5.1e6,
                                      status=int(ip.Status.CONVERGED))
     families = {"centroidal_dynamics": 2e-9, "com": 0.0, "friction_cone": 3e-7}
@@ -150,7 +150,8 @@ def test_convergence_figure(result):
     panels = len(ip.HISTORY_COLUMNS) - 1  # the restoration column marks the violation panel
     history_axes, bars = fig.axes[:panels], fig.axes[panels]
     assert [ax.get_yscale() for ax in history_axes] == ["log"] * panels
-    assert [ax.get_title() for ax in history_axes][-1] == "block solves (refinement included)"
+    assert [ax.get_title() for ax in history_axes][-2:] == ["block solves (refinement included)",
+                                                            "factorisations (inertia correction)"]
     assert len(history_axes[0].lines[0].get_xdata()) == 40
     rejected = [line for line in history_axes[4].lines if line.get_label().startswith("rejected")]
     assert len(rejected[0].get_xdata()) == 6  # steps 3, 10, 17, 24, 31, 38

@@ -317,6 +317,24 @@ def test_history_counts_the_block_solves_of_each_iteration():
     assert np.all(solves == np.round(solves))
 
 
+def test_history_counts_the_factorisations_of_the_inertia_correction():
+    """A convex problem factors once per iteration. Rosenbrock from (0, 1) at each of 3 knots has
+    the Hessian diag(−398, 200) everywhere: the first iteration's attempts with δ_w = 0, 1e-4,
+    1e-2, 1 and 100 each stop at block 0 (1 block each) and δ_w = 1e4 factors all 3 blocks:
+    (5 + 3) / 3 factorisations."""
+    convex = solve(_integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    history = np.asarray(convex.history)[: int(convex.iterations)]
+    assert np.all(history[:, ip.HISTORY_COLUMNS.index("factorisations")] == 1.0)
+    free = jnp.full((3, 2), jnp.inf)
+    start = jnp.tile(jnp.array([0.0, 1.0]), (3, 1))
+    solution = solve(_unconstrained(ROSENBROCK, -free, free), start, jnp.ones(1), options=OPTIONS)
+    history = np.asarray(solution.history)[: int(solution.iterations)]
+    assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
+    assert history[0, ip.HISTORY_COLUMNS.index("regularisation")] == 1e4
+    assert history[0, ip.HISTORY_COLUMNS.index("factorisations")] == pytest.approx(8 / 3, rel=1e-15)
+    assert np.all(np.round(3 * history[:, ip.HISTORY_COLUMNS.index("factorisations")]) >= 3)
+
+
 def test_a_filter_entry_does_not_reject_the_point_it_was_made_from():
     """The filter's comparisons allow 10 ε of the entry (IPOPT's): at θ0 = 3.6e-6, φ0 = 546.4
     (walk-to-fly, iteration 2860) the entry (1 − 1e-5) θ0, φ0 − 1e-8 θ0 is φ0 in floating point,

@@ -158,18 +158,20 @@ class Multipliers:
 
 
 HISTORY_COLUMNS = ("objective", "violation", "stationarity", "barrier", "step_length", "regularisation", "linear_solves",
-                   "restoration")
+                   "restoration", "factorisations")
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Solution:
     """Result of a solve: the optimum (scaled NLP variables), multipliers, why it stopped and
-    statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 7) has one row per
+    statistics. ``status`` is a ``Status`` code; ``history`` (max_iterations, 9) has one row per
     iteration with the columns of ``HISTORY_COLUMNS`` (step length 0: step rejected; linear
     solves: block solves with the factor, refinements and second-order corrections included;
     restoration: 1 in an iteration of the restoration phase, whose regularisation is its damping ζ,
-    0 otherwise);
+    0 otherwise; factorisations: the inertia correction's work, the diagonal blocks factored over
+    all its attempts divided by the number of blocks: 1 when the first attempt worked, more for
+    each that failed, a failed one counting its blocks up to the first indefinite one included);
     rows past ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations).
     ``bound_multipliers`` (lower, upper), each a tuple over (Z, θ, path slacks, transition
     slacks) in the solver's scaling, are for warm starts. ``slacks`` (path, transition): the
@@ -616,7 +618,8 @@ def advance(nlp, state, options=Options(), until=None):
         # Back in the barrier problem, the bound multipliers start on its central path.
         zl_new = _tmap(lambda z, a, m: jnp.where(done & m, state.mu / a, z), zl_new, dl_new, bounds.has_lower)
         zu_new = _tmap(lambda z, b, m: jnp.where(done & m, state.mu / b, z), zu_new, du_new, bounds.has_upper)
-        record = jnp.stack([r_new.cost, v_new, state.stationarity, state.mu, step, zeta, 1.0, 1.0])
+        record = jnp.stack([r_new.cost, v_new, state.stationarity, state.mu, step, zeta, 1.0, 1.0,
+                            jnp.minimum(chol.factored + 1, K).astype(dtype) / K])
         if options.progress is not None:
             jax.debug.callback(options.progress, state.iterations, record)
         return dataclasses.replace(
@@ -737,19 +740,24 @@ def advance(nlp, state, options=Options(), until=None):
 
         chol0, ok0 = attempt(state.forced)
 
+        def attempted(chol):
+            """Diagonal blocks an attempt factored, the first indefinite one included."""
+            return jnp.minimum(chol.factored + 1, K)
+
         def needs_more(carry):
-            delta, _, ok = carry
+            delta, _, ok, _ = carry
             return (~ok) & (delta < 1e40)
 
         def grow(carry):
-            delta, _, _ = carry
+            delta, _, _, work = carry
             delta = jnp.where(delta == 0.0, jnp.where(state.regularisation == 0.0, 1e-4,
                                                        jnp.maximum(1e-20, state.regularisation / 3)),
                               delta * jnp.where(state.regularisation == 0.0, 100.0, 8.0))
             chol, ok = attempt(delta)
-            return delta, chol, ok
+            return delta, chol, ok, work + attempted(chol)
 
-        delta_w, chol, factored = jax.lax.while_loop(needs_more, grow, (state.forced, chol0, ok0))
+        delta_w, chol, factored, work = jax.lax.while_loop(needs_more, grow, (state.forced, chol0, ok0, attempted(chol0)))
+        factorisations = work.astype(dtype) / K
         hessian = regularised(lagrangian, delta_w)
         delta_s = delta_w if options.ipopt_slacks else 0.0
         inv_sigma, weights = slack_terms(delta_s)
@@ -931,6 +939,7 @@ def advance(nlp, state, options=Options(), until=None):
         v_new, _ = violation(nlp, P_new[0], P_new[1])
         record = jnp.stack([
             stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w, solves, 0.0,
+            factorisations,
         ])
         status = jnp.where(
             converged, int(Status.CONVERGED),
@@ -955,7 +964,8 @@ def advance(nlp, state, options=Options(), until=None):
         # Converged: keep the point where the test held, not the step taken from it.
         new = jax.tree.map(lambda a, b: jnp.where(converged, b, a), new, dataclasses.replace(
             state, status=status, stationarity=error0, iterations=state.iterations + 1,
-            history=state.history.at[state.iterations].set(jnp.stack([cost_now, v_now, error0, mu, 0.0, delta_w, 0.0, 0.0]))))
+            history=state.history.at[state.iterations].set(
+                jnp.stack([cost_now, v_now, error0, mu, 0.0, delta_w, 0.0, 0.0, factorisations]))))
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves((new.P, new.y, new.zl, new.zu))]))
         new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
         if options.progress is not None:  # the row the history keeps for this iteration
