@@ -74,12 +74,19 @@ class Progress:
         return _Timer()
 
     def iteration(self, iteration, record):
-        """The solver's per-iteration callback (``Options.progress``)."""
-        objective, violation, stationarity, barrier, step, regularisation, solves, restoring = (float(v) for v in record)
+        """The solver's per-iteration callback (``Options.progress``): record is a history row."""
+        from jaxmm.solver.interior_point import HISTORY_COLUMNS
+
+        if len(record) != len(HISTORY_COLUMNS):
+            raise ValueError(f"a history row has {len(HISTORY_COLUMNS)} entries ({', '.join(HISTORY_COLUMNS)}), "
+                             f"got {len(record)}")
+        row = {name: float(v) for name, v in zip(HISTORY_COLUMNS, record)}
         self._write(
-            f"iteration {int(iteration) + 1:5d}{'r' if restoring == 1 else ' '} objective {objective:.6e}  "
-            f"violation {violation:.1e}  stationarity {stationarity:.1e}  barrier μ {barrier:.0e}  step {step:.2g}  "
-            f"regularisation {regularisation:.0e}  solves {solves:.0f}"
+            f"iteration {int(iteration) + 1:5d}{'r' if row['restoration'] == 1 else ' '} "
+            f"objective {row['objective']:.6e}  violation {row['violation']:.1e}  "
+            f"stationarity {row['stationarity']:.1e}  barrier μ {row['barrier']:.0e}  step {row['step_length']:.2g}  "
+            f"regularisation {row['regularisation']:.0e}  factorisations {row['factorisations']:.2f}  "
+            f"solves {row['linear_solves']:.0f}"
         )
 
     def done(self):

@@ -63,13 +63,16 @@ def test_progress_is_shown_on_a_terminal_and_silent_otherwise():
     progress = Progress(True, stream)
     with progress.compiling("something") as timer:
         pass
-    progress.iteration(4, [5.36e6, 1e-3, 2e-2, 1e-4, 0.5, 0.0, 6.0, 0.0])
-    progress.iteration(5, [5.37e6, 1e-3, 2e-2, 1e-4, 0.5, 3e-3, 1.0, 1.0])  # a restoration iteration
+    progress.iteration(4, [5.36e6, 1e-3, 2e-2, 1e-4, 0.5, 0.0, 6.0, 0.0, 1.0])
+    progress.iteration(5, [5.37e6, 1e-3, 2e-2, 1e-4, 0.5, 3e-3, 1.0, 1.0, 2.5])  # a restoration iteration
+    with pytest.raises(ValueError, match="a history row has 9 entries"):
+        progress.iteration(6, [5.37e6, 1e-3, 2e-2, 1e-4, 0.5, 3e-3, 1.0, 1.0])
     progress.done()
     text = stream.getvalue()
     assert "compiled something in" in text and timer.seconds >= 0
     assert "iteration     5  objective 5.360000e+06  violation 1.0e-03" in text
-    assert "iteration     6r objective 5.370000e+06" in text and text.rstrip().endswith("solves 1")
+    assert "iteration     6r objective 5.370000e+06" in text
+    assert text.rstrip().endswith("regularisation 3e-03  factorisations 2.50  solves 1")
     assert Progress.detect(quiet=False) is False  # pytest captures stderr: not a terminal
     quiet = io_module.StringIO()
     silent = Progress(False, quiet)
