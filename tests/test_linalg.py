@@ -32,7 +32,7 @@ def _random_system(K, n, m, seed):
     return A, D, L, B, C
 
 
-@pytest.mark.parametrize("K, n, m", [(1, 3, 1), (2, 3, 1), (7, 5, 2), (20, 12, 1), (5, 4, 0)])
+@pytest.mark.parametrize("K, n, m", [(1, 3, 1), (2, 3, 1), (3, 2, 1), (7, 5, 2), (8, 4, 2), (20, 12, 1), (5, 4, 0)])
 def test_solve_matches_dense(K, n, m):
     A, D, L, B, C = _random_system(K, n, m, seed=K * 100 + n)
     rng = np.random.default_rng(0)
@@ -44,23 +44,30 @@ def test_solve_matches_dense(K, n, m):
     assert np.allclose(np.concatenate([np.asarray(x).reshape(-1), y]), expected, rtol=1e-9, atol=1e-9)
 
 
-def test_not_positive_definite_is_reported():
-    A, D, L, B, C = _random_system(4, 3, 1, seed=1)
+@pytest.mark.parametrize("indefinite", [1, 7])
+def test_not_positive_definite_is_reported_where_either_chain_meets_it(indefinite):
+    """The factorisation runs from both ends (blocks 0, 1, … and 8, 7, … of 9, meeting at block
+    4) and stops at the first indefinite block: at block 1 or at block 7, after blocks 0 and 8
+    and the other chain's second block; blocks 2, 3, 5 and 6 are never factored."""
+    A, D, L, B, C = _random_system(9, 3, 1, seed=1)
     D = D.copy()
-    D[2] -= 1e3 * np.eye(3)
+    D[indefinite] -= 1e3 * np.eye(3)
     chol = linalg.factor(D, L, B, C)
     assert not bool(chol.ok)
-    # The factorisation stops at the first failing block: blocks 0 and 1 factored, 2 and 3 not.
-    assert int(chol.factored) == 2
-    assert np.all(np.asarray(chol.diagonal[3]) == 0.0)
+    assert int(chol.factored) == 3
+    assert np.all(np.asarray(chol.diagonal)[[2, 3, 5, 6]] == 0.0)
 
 
-def test_a_failing_last_block_or_schur_complement_is_reported():
+def test_a_failing_last_block_middle_block_or_schur_complement_is_reported():
     A, D, L, B, C = _random_system(4, 3, 1, seed=2)
     last = D.copy()
     last[3] -= 1e3 * np.eye(3)
     chol = linalg.factor(last, L, B, C)
-    assert not bool(chol.ok) and int(chol.factored) == 3
+    assert not bool(chol.ok) and int(chol.factored) == 1  # the backward chain's first block: found at once
+    middle = D.copy()
+    middle[2] -= 1e3 * np.eye(3)
+    chol = linalg.factor(middle, L, B, C)
+    assert not bool(chol.ok) and int(chol.factored) == 3  # blocks 0, 1 and 3 factored, 2 (the middle) not
     chol = linalg.factor(D, L, B, C - 1e3)
     assert int(chol.factored) == 4 and not bool(chol.ok)
     assert bool(linalg.factor(D, L, B, C).ok)
@@ -86,7 +93,8 @@ def test_matvec_matches_dense():
     assert np.abs(np.concatenate([np.asarray(top).reshape(-1), bottom]) - expected).max() <= 1e-12
 
 
-@pytest.mark.parametrize("K, n, m, coupled", [(7, 6, 2, (4, 1, 5)), (3, 5, 1, ()), (4, 4, 1, (0, 1, 2, 3)), (1, 3, 1, (2,))])
+@pytest.mark.parametrize("K, n, m, coupled", [(7, 6, 2, (4, 1, 5)), (8, 6, 1, (4, 1, 5)), (3, 5, 1, ()), (4, 4, 1, (0, 1, 2, 3)),
+                                              (2, 3, 1, (2,)), (1, 3, 1, (2,))])
 def test_coupling_in_some_columns(K, n, m, coupled):
     """Coupling blocks non-zero only in the declared columns: the same solution as a dense solve,
     and a wrong declaration (a non-zero column left out) is not silently the same."""
@@ -104,7 +112,7 @@ def test_coupling_in_some_columns(K, n, m, coupled):
     chol = jax.jit(linalg.factor, static_argnums=4)(D, L, B, C, coupled)
     x, y = jax.jit(linalg.solve)(chol, r, s)
     expected = np.linalg.solve(A, np.concatenate([r.reshape(-1), s]))
-    assert bool(chol.ok) and chol.subdiagonal.shape == (K - 1, n, len(coupled))
+    assert bool(chol.ok) and chol.forward.couplings.shape[-1] == len(coupled)
     assert np.allclose(np.concatenate([np.asarray(x).reshape(-1), y]), expected, rtol=1e-10, atol=1e-10)
     if K > 1 and len(coupled) < n:
         x_wrong, _ = linalg.solve(linalg.factor(D, L + 0.5, B, C, coupled), r, s)
@@ -136,5 +144,5 @@ def test_diagonal_shifts_added_as_factored(coupled):
     for a, b in zip(jax.tree.leaves(shifted), jax.tree.leaves(added)):
         assert np.array_equal(np.asarray(a), np.asarray(b))
     negative = shift.copy()
-    negative[3] -= 1e3
-    assert int(linalg.factor(D, L, B, C, coupled=coupled, shift=negative).factored) == 3
+    negative[3] -= 1e3  # block 3 of 6 is where the two chains meet, factored last
+    assert int(linalg.factor(D, L, B, C, coupled=coupled, shift=negative).factored) == 5

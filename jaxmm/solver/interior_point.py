@@ -171,7 +171,7 @@ class Solution:
     restoration: 1 in an iteration of the restoration phase, whose regularisation is its damping ζ,
     0 otherwise; factorisations: the inertia correction's work, the diagonal blocks factored over
     all its attempts divided by the number of blocks: 1 when the first attempt worked, more for
-    each that failed, a failed one counting its blocks up to the first indefinite one included);
+    each that failed, a failed one counting the blocks it factored and the indefinite one);
     rows past ``iterations`` are NaN. ``barrier_updates`` counts the decreases of μ (outer iterations).
     ``bound_multipliers`` (lower, upper), each a tuple over (Z, θ, path slacks, transition
     slacks) in the solver's scaling, are for warm starts. ``slacks`` (path, transition): the
@@ -741,7 +741,7 @@ def advance(nlp, state, options=Options(), until=None):
         chol0, ok0 = attempt(state.forced)
 
         def attempted(chol):
-            """Diagonal blocks an attempt factored, the first indefinite one included."""
+            """Diagonal blocks an attempt factored, the indefinite one included."""
             return jnp.minimum(chol.factored + 1, K)
 
         def needs_more(carry):

@@ -6,16 +6,22 @@
     [             L_{K−1} D_{K−1} B_{K−1} ] [   ]   [   ]
     [ B_0ᵀ  B_1ᵀ   …     B_{K−1}ᵀ C       ] [y  ]   [s  ]
 
-The block Cholesky factorisation runs forward in a ``jax.lax.while_loop`` (a Riccati-like recursion,
-O(K n³)); the border (the global variables) is eliminated by a Schur complement. No dense
-factorisation of the whole matrix is ever formed. A matrix that is not positive definite
-stops the factorisation at its first failing block: ``BlockCholesky.ok`` reports it.
+The block Cholesky factorisation runs from both ends at once, a block of each chain per step of a
+``jax.lax.while_loop`` (Riccati-like recursions, O(K n³), half as many sequential steps), and
+meets in the middle block; the border (the global variables) is eliminated by a Schur
+complement. No dense factorisation of the whole matrix is ever formed. A matrix that is not
+positive definite stops the factorisation at the first failing block either chain meets:
+``BlockCholesky.ok`` reports it. Whether a matrix is positive definite does not depend on the
+order of elimination, but where it fails does: an interior-point method's Newton matrices on a
+trajectory are indefinite near the ends of the horizon (the boundary conditions' multipliers),
+where a one-way factorisation found it only after factoring nearly every block.
 
 When the coupling blocks L_k are non-zero only in some columns (``coupled``: of a stage-wise
 NLP, the variables of knot k that its transition rows touch), each knot's variables are
-ordered with those columns last: the Schur update of the next block then involves only them
-(a triangular solve with s right-hand sides on the trailing s × s factor and an (n × s)(s × n)
-product, instead of n × n ones).
+ordered with those columns last: the Schur updates then involve only them (forward: a
+triangular solve with n right-hand sides on the trailing s × s factor and an (n × s)(s × n)
+product; backward: a triangular solve with s right-hand sides and an (s × n)(n × s) product
+into the trailing s × s block; instead of n × n ones).
 """
 
 import dataclasses
@@ -28,15 +34,28 @@ from jax.scipy.linalg import solve_triangular
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class BlockCholesky:
-    """A = 𝓛 𝓛ᵀ with 𝓛 block lower-bidiagonal, each knot's variables in the order ``order``
-    (static; the coupled columns last): diagonal (K, n, n), the trailing s columns of the
-    sub-diagonal (K − 1, n, s); plus the border's Schur complement factor (m, m), A⁻¹B
-    (K, n, m), and the number of diagonal blocks factored (K unless a block was not positive
-    definite: the blocks after that one are 0)."""
+class Chain:
+    """One chain of a two-ended block Cholesky factorisation (``factor``), M slots: the factors of
+    its diagonal blocks in the order it factored them, blocks (M, n, n), and the trailing s
+    columns of their couplings to the next block of the chain, couplings (M, n, s)."""
 
-    diagonal: jax.Array
-    subdiagonal: jax.Array
+    blocks: jax.Array
+    couplings: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class BlockCholesky:
+    """A = 𝓛 𝓛ᵀ, each knot's variables in the order ``order`` (static; the coupled columns last),
+    with 𝓛 block lower-bidiagonal above the middle block M = K // 2 and upper-bidiagonal below
+    it: the forward chain (blocks 0, 1, …, M − 1), the middle block's factor (n, n), the
+    backward chain (blocks K − 1, K − 2, …, M + 1: K − 1 − M of its slots used); plus the
+    border's Schur complement factor (m, m), A⁻¹B (K, n, m), and the number of diagonal blocks
+    factored (K unless a block was not positive definite: both chains stop at the first)."""
+
+    forward: Chain
+    middle: jax.Array
+    backward: Chain
     border_solution: jax.Array
     schur: jax.Array
     border: jax.Array
@@ -47,16 +66,32 @@ class BlockCholesky:
     def ok(self):
         """True when every block was factored and every factor is finite (the matrix was
         positive definite)."""
-        return (self.factored == self.diagonal.shape[-3]) & jnp.all(jnp.isfinite(self.schur))
+        return (self.factored == self.border_solution.shape[-3]) & jnp.all(jnp.isfinite(self.schur))
+
+    @property
+    def diagonal(self):
+        """The factors of the diagonal blocks in knot order, (K, n, n) (a copy, for inspection)."""
+        K = self.border_solution.shape[-3]
+        return jnp.concatenate([self.forward.blocks, self.middle[None], self.backward.blocks[: K - 1 - K // 2][::-1]])
 
 
 def _factor_tridiagonal(D, L, order, s, shift):
-    """Block Cholesky of the tridiagonal part, D's diagonals plus ``shift`` (K, n), with each
-    knot's variables in the order ``order`` (static (n,) indices; None: as given), L's columns
-    non-zero only in the last s of that order (``coupled_order``): returns (Lc (K, n, n),
-    W (K − 1, n, s), the number of diagonal blocks factored before the first that is not
-    positive definite), in that order."""
+    """Two-ended block Cholesky of the tridiagonal part, D's diagonals plus ``shift`` (K, n), with
+    each knot's variables in the order ``order`` (static (n,) indices; None: as given), L's
+    columns non-zero only in the last s of that order (``coupled_order``).
+
+    Above the middle block M = K // 2, 𝓛[k, k] = Lc_k and 𝓛[k+1, k] = L_k Lc_k^{−T}, non-zero
+    in its last s columns (the forward chain's couplings, (n, s)); below it 𝓛[k, k] = Lc_k and
+    𝓛[k−1, k] = (Lc_k^{−1} L_{k−1})ᵀ, non-zero in its last s rows (the backward chain's
+    couplings: Lc_k^{−1} L_{k−1}'s last s columns); at M, Lc_M Lc_Mᵀ is what both chains leave
+    of the block. The chains run together, a block each per step, and stop at the first block
+    that is not positive definite: an inertia correction's failed attempts, indefinite near
+    either end of the horizon, then cost a few blocks (take-off, session 29).
+
+    Returns (forward ``Chain``, the middle factor (n, n), backward ``Chain``, the number of
+    diagonal blocks factored: K when A is positive definite)."""
     K, n = D.shape[:2]
+    M, back = K // 2, K - 1 - K // 2  # forward chain 0..M−1, backward chain K−1..M+1: M or M − 1 blocks
     if order is None:
         block, coupling = (lambda k: D[k] + jnp.diag(shift[k])), (lambda k: L[k])
     else:
@@ -65,53 +100,112 @@ def _factor_tridiagonal(D, L, order, s, shift):
         block = lambda k: _take(_take(D[k], order, 0), order, 1) + jnp.diag(shift[k][order])  # noqa: E731
         coupling = lambda k: _take(_take(L[k], order, 0), order[n - s :], 1)  # noqa: E731
 
+    def below(previous, k):
+        """(L_{k−1} Lc_{k−1}^{−T})ᵀ's non-zero rows (s, n), for block k of the forward chain (previous:
+        Lc_{k−1}): they need only the trailing s × s block of Lc_{k−1}."""
+        return solve_triangular(previous[n - s :, n - s :], coupling(k - 1).T, lower=True)
+
+    def above(following, k):
+        """Lc_{k+1}^{−1} L_k's non-zero columns (n, s), for block k of the backward chain
+        (following: Lc_{k+1}): their Gram product touches only the last s rows and columns of block k."""
+        return solve_triangular(following, coupling(k), lower=True)
+
+    def minus_above(A, Y):
+        return A.at[n - s :, n - s :].add(-(Y.T @ Y))
+
+    def positive(factor):
+        return jnp.all(jnp.isfinite(factor))
+
     def running(carry):
-        k, _, _, ok = carry
-        return ok & (k < K)
+        j, *_, ok = carry
+        return ok & (j < M)
 
     def step(carry):
-        k, Lc, W, _ = carry
-        # W_k = L_k Lc_{k−1}^{−T}; with L_k zero but in its last s columns, so is W_k, and
-        # those columns need only the trailing s × s block of Lc_{k−1}.
-        Wt = solve_triangular(Lc[k - 1][n - s :, n - s :], coupling(k - 1).T, lower=True)  # W_kᵀ (s, n)
-        factor = jnp.linalg.cholesky(block(k) - Wt.T @ Wt)
-        ok = jnp.all(jnp.isfinite(factor))
-        return k + ok, Lc.at[k].set(factor), W.at[k - 1].set(Wt.T), ok
+        # Each chain in arrays of its own, updated in place: with both chains' blocks in one
+        # array, XLA copied the whole array at every step (a factorisation 3.6× slower).
+        j, Lf, Wf, Lb, Wb, count, _ = carry
+        Wt = below(Lf[j - 1], j)
+        forward = jnp.linalg.cholesky(block(j) - Wt.T @ Wt)
+        Y = above(Lb[j - 1], K - 1 - j)
+        backward = jnp.linalg.cholesky(minus_above(block(K - 1 - j), Y))
+        has_b = j < back  # K even: the backward chain has no block at the last step
+        ok_f, ok_b = positive(forward), positive(backward) | ~has_b
+        Lf, Wf = Lf.at[j].set(forward), Wf.at[j - 1].set(Wt.T)
+        Lb, Wb = Lb.at[j].set(backward), Wb.at[j - 1].set(Y)
+        return j + 1, Lf, Wf, Lb, Wb, count + ok_f + (ok_b & has_b), ok_f & ok_b
 
     # The factors are updated in place, indexed, rather than stacked as a scan's outputs
     # (80 ms against 66 ms to factor 71 blocks of 178 × 178 here; 36 ms against 10.5 ms for a
-    # solve, where XLA copied blocks between the two scans). The loop stops at the first
-    # block that is not positive definite: an inertia correction's failed attempts then cost
-    # only the blocks up to it.
-    first = jnp.linalg.cholesky(block(0))
-    ok = jnp.all(jnp.isfinite(first))
-    if K == 1:  # no coupling blocks to index
-        return first[None], jnp.zeros((0, n, s), D.dtype), ok.astype(jnp.int32)
-    carry = (ok.astype(jnp.int32), jnp.zeros_like(D).at[0].set(first), jnp.zeros((K - 1, n, s), D.dtype), ok)
-    factored, Lc, W, _ = jax.lax.while_loop(running, step, carry)
-    return Lc, W, factored
+    # solve, where XLA copied blocks between the two scans).
+    Lf, Lb = jnp.zeros((M, n, n), D.dtype), jnp.zeros((M, n, n), D.dtype)
+    Wf, Wb = jnp.zeros((M, n, s), D.dtype), jnp.zeros((M, n, s), D.dtype)
+    count, ok = jnp.asarray(0), jnp.asarray(True)
+    if M >= 1:
+        first = jnp.linalg.cholesky(block(0))
+        Lf, count, ok = Lf.at[0].set(first), count + positive(first), positive(first)
+    if back >= 1:
+        last = jnp.linalg.cholesky(block(K - 1))
+        Lb, count, ok = Lb.at[0].set(last), count + positive(last), ok & positive(last)
+    if M >= 2:
+        _, Lf, Wf, Lb, Wb, count, ok = jax.lax.while_loop(running, step, (jnp.asarray(1), Lf, Wf, Lb, Wb, count, ok))
+    # The middle block, computed whatever the chains found (one block; a branch would copy them).
+    A = block(M)
+    if M >= 1:
+        Wt = below(Lf[M - 1], M)
+        A, Wf = A - Wt.T @ Wt, Wf.at[M - 1].set(Wt.T)
+    if back >= 1:
+        Y = above(Lb[back - 1], M)
+        A, Wb = minus_above(A, Y), Wb.at[back - 1].set(Y)
+    middle = jnp.linalg.cholesky(A)
+    return Chain(Lf, Wf), middle, Chain(Lb, Wb), count + (ok & positive(middle))
 
 
-def _solve_tridiagonal(Lc, W, R):
-    """Solve the tridiagonal part for right-hand sides R (K, n, r) → (K, n, r)."""
-    K, n = Lc.shape[:2]
-    s = W.shape[-1]
+def _solve_tridiagonal(forward, middle, backward, R):
+    """Solve the tridiagonal part for right-hand sides R (K, n, r) → (K, n, r), with the factors
+    of ``_factor_tridiagonal``: 𝓛 y = R from both ends to the middle block, then 𝓛ᵀ x = y from
+    the middle outwards."""
+    K, n = R.shape[:2]
+    M, back = K // 2, K - 1 - K // 2
+    s = forward.couplings.shape[-1]
+    Lf, Wf, Lb, Wb = forward.blocks, forward.couplings, backward.blocks, backward.couplings
 
-    def forward(k, y):
-        return y.at[k].set(solve_triangular(Lc[k], R[k] - W[k - 1] @ y[k - 1][n - s :], lower=True))
+    def lower(factor, rhs):
+        return solve_triangular(factor, rhs, lower=True)
 
-    y = jnp.zeros_like(R).at[0].set(solve_triangular(Lc[0], R[0], lower=True))
-    if K == 1:  # no coupling blocks to index
-        return solve_triangular(Lc[0], y[0], lower=True, trans="T")[None]
-    y = jax.lax.fori_loop(1, K, forward, y)
+    def upper(factor, rhs):
+        return solve_triangular(factor, rhs, lower=True, trans="T")
 
-    def backward(i, x):
-        k = K - 2 - i
-        rhs = y[k].at[n - s :].add(-(W[k].T @ x[k + 1]))
-        return x.at[k].set(solve_triangular(Lc[k], rhs, lower=True, trans="T"))
+    def inward(j, carry):
+        yf, yb = carry
+        yf = yf.at[j].set(lower(Lf[j], R[j] - Wf[j - 1] @ yf[j - 1][n - s :]))
+        yb = yb.at[j].set(lower(Lb[j], R[K - 1 - j].at[n - s :].add(-(Wb[j - 1].T @ yb[j - 1]))))
+        return yf, yb
 
-    last = solve_triangular(Lc[-1], y[-1], lower=True, trans="T")
-    return jax.lax.fori_loop(0, K - 1, backward, jnp.zeros_like(R).at[-1].set(last))
+    yf, yb = jnp.zeros((M,) + R.shape[1:], R.dtype), jnp.zeros((M,) + R.shape[1:], R.dtype)
+    rhs = R[M]
+    if M >= 1:
+        yf = yf.at[0].set(lower(Lf[0], R[0]))
+    if back >= 1:
+        yb = yb.at[0].set(lower(Lb[0], R[K - 1]))
+    if M >= 2:  # K even: the backward chain's last slot gets a value no one reads
+        yf, yb = jax.lax.fori_loop(1, M, inward, (yf, yb))
+    if M >= 1:
+        rhs = rhs - Wf[M - 1] @ yf[M - 1][n - s :]
+    if back >= 1:
+        rhs = rhs.at[n - s :].add(-(Wb[back - 1].T @ yb[back - 1]))
+    x_middle = upper(middle, lower(middle, rhs))
+
+    def outward(i, carry):
+        xf, xb, previous_f, previous_b = carry
+        k, b = M - 1 - i, back - 1 - i  # the forward chain's block k, the backward chain's slot b
+        new_f = upper(Lf[k], yf[k].at[n - s :].add(-(Wf[k].T @ previous_f)))
+        new_b = upper(Lb[b], yb[b] - Wb[b] @ previous_b[n - s :])
+        return xf.at[k].set(new_f), xb.at[b].set(new_b), new_f, jnp.where(b >= 0, new_b, previous_b)
+
+    xf, xb = jnp.zeros_like(yf), jnp.zeros_like(yb)
+    if M >= 1:
+        xf, xb, _, _ = jax.lax.fori_loop(0, M, outward, (xf, xb, x_middle, x_middle))
+    return jnp.concatenate([xf, x_middle[None], xb[:back][::-1]])
 
 
 def coupled_order(n, coupled):
@@ -151,13 +245,13 @@ def factor(D, L, B, C, coupled=None, shift=None, corner_shift=None):
     p = None if coupled is None else np.asarray(order)
     if p is not None:
         B = _take(B, p, 1)
-    Lc, W, factored = _factor_tridiagonal(D, L, p, s, shift)
+    forward, middle, backward, factored = _factor_tridiagonal(D, L, p, s, shift)
     K = D.shape[0]
     # A⁻¹ B only when every block was factored: an inertia correction's failed attempts (1.5 of
     # the 2.5 per iteration on take-off N = 70) then cost no solve.
-    X = jax.lax.cond(factored == K, lambda: _solve_tridiagonal(Lc, W, B), lambda: jnp.zeros_like(B))
+    X = jax.lax.cond(factored == K, lambda: _solve_tridiagonal(forward, middle, backward, B), lambda: jnp.zeros_like(B))
     schur = jnp.linalg.cholesky(C - jnp.einsum("kna,knb->ab", B, X))
-    return BlockCholesky(diagonal=Lc, subdiagonal=W, border_solution=X, schur=schur, border=B,
+    return BlockCholesky(forward=forward, middle=middle, backward=backward, border_solution=X, schur=schur, border=B,
                          factored=factored, order=None if coupled is None else order)
 
 
@@ -167,7 +261,7 @@ def solve(chol, r, s):
     if chol.order is not None:
         p = np.asarray(chol.order)
         r = _take(r, p, 1)
-    x0 = _solve_tridiagonal(chol.diagonal, chol.subdiagonal, r[..., None])[..., 0]
+    x0 = _solve_tridiagonal(chol.forward, chol.middle, chol.backward, r[..., None])[..., 0]
     rhs = s - jnp.einsum("knm,kn->m", chol.border, x0)
     y = jax.scipy.linalg.cho_solve((chol.schur, True), rhs)
     x = x0 - jnp.einsum("knm,m->kn", chol.border_solution, y)
