@@ -43,8 +43,10 @@ def _run(name, directory):
 
 
 # The tuning studies solve and differentiate a dozen times even at CI sizes (10 minutes on one
-# core): like the other robot-scale tuning tests, they run by hand with ``pytest -m slow``.
-SLOW = {"05_weight_tuning"}
+# core), and the multistart notebook compiles a vmapped batch of robot solves (206 s in session
+# 29's CI-like run, which took 21.7 minutes with it): like the other robot-scale batch and
+# tuning tests, they run by hand with ``pytest -m slow``.
+SLOW = {"04_multistart", "05_weight_tuning"}
 
 
 def _notebook_test(name):
