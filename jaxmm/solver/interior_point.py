@@ -526,6 +526,10 @@ def advance(nlp, state, options=Options(), until=None):
         J = tuple(rows.scaled(rows.group_rows(B, g, supports.get(g)), s) for g, s in zip(GROUPS, row_scale))
         return J[:2] + tuple(rows.scaled(r, a) for r, a in zip(J[2:], active))
 
+    def attempted(chol):
+        """Diagonal blocks a factorisation attempt factored, the indefinite one included."""
+        return jnp.minimum(chol.factored + 1, K)
+
     def restoration(state, B):
         """One iteration of the restoration phase: a primal–dual step on ½‖c‖² + μ_R × barrier
         (μ_R = μ min(1, ‖c‖∞) / RESTORATION_PENALTY, the cost left out) with the Gauss–Newton
@@ -619,7 +623,7 @@ def advance(nlp, state, options=Options(), until=None):
         zl_new = _tmap(lambda z, a, m: jnp.where(done & m, state.mu / a, z), zl_new, dl_new, bounds.has_lower)
         zu_new = _tmap(lambda z, b, m: jnp.where(done & m, state.mu / b, z), zu_new, du_new, bounds.has_upper)
         record = jnp.stack([r_new.cost, v_new, state.stationarity, state.mu, step, zeta, 1.0, 1.0,
-                            jnp.minimum(chol.factored + 1, K).astype(dtype) / K])
+                            attempted(chol).astype(dtype) / K])
         if options.progress is not None:
             jax.debug.callback(options.progress, state.iterations, record)
         return dataclasses.replace(
@@ -739,10 +743,6 @@ def advance(nlp, state, options=Options(), until=None):
             return chol, chol.ok
 
         chol0, ok0 = attempt(state.forced)
-
-        def attempted(chol):
-            """Diagonal blocks an attempt factored, the indefinite one included."""
-            return jnp.minimum(chol.factored + 1, K)
 
         def needs_more(carry):
             delta, _, ok, _ = carry

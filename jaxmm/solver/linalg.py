@@ -200,6 +200,7 @@ def _solve_tridiagonal(forward, middle, backward, R):
         k, b = M - 1 - i, back - 1 - i  # the forward chain's block k, the backward chain's slot b
         new_f = upper(Lf[k], yf[k].at[n - s :].add(-(Wf[k].T @ previous_f)))
         new_b = upper(Lb[b], yb[b] - Wb[b] @ previous_b[n - s :])
+        # K even: b = −1 at the last step, a spare slot's value no one reads.
         return xf.at[k].set(new_f), xb.at[b].set(new_b), new_f, jnp.where(b >= 0, new_b, previous_b)
 
     xf, xb = jnp.zeros_like(yf), jnp.zeros_like(yb)
