@@ -146,3 +146,15 @@ def test_diagonal_shifts_added_as_factored(coupled):
     negative = shift.copy()
     negative[3] -= 1e3  # block 3 of 6 is where the two chains meet, factored last
     assert int(linalg.factor(D, L, B, C, coupled=coupled, shift=negative).factored) == 5
+
+
+def test_diagonal_gives_the_lower_triangular_factors():
+    """``BlockCholesky.diagonal`` returns the blocks' lower triangular factors (stored transposed):
+    the chains' first blocks, knot 0 and knot K − 1, are factored before any update, so their
+    factors are those of D_0 and D_{K−1} themselves."""
+    K, n, m = 5, 4, 1
+    _, D, L, B, C = _random_system(K, n, m, seed=21)
+    factors = np.asarray(linalg.factor(D, L, B, C).diagonal)
+    assert np.all(np.triu(factors, 1) == 0.0)
+    for k in (0, K - 1):
+        assert np.allclose(factors[k] @ factors[k].T, D[k], rtol=1e-12, atol=1e-12)
