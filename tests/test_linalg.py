@@ -149,9 +149,9 @@ def test_diagonal_shifts_added_as_factored(coupled):
 
 
 def test_diagonal_gives_the_lower_triangular_factors():
-    """``BlockCholesky.diagonal`` returns the blocks' lower triangular factors (stored transposed):
-    the chains' first blocks, knot 0 and knot K − 1, are factored before any update, so their
-    factors are those of D_0 and D_{K−1} themselves."""
+    """``BlockCholesky.diagonal`` returns the blocks' lower triangular factors: the chains' first
+    blocks, knot 0 and knot K − 1, are factored before any update, so their factors are those of
+    D_0 and D_{K−1} themselves."""
     K, n, m = 5, 4, 1
     _, D, L, B, C = _random_system(K, n, m, seed=21)
     factors = np.asarray(linalg.factor(D, L, B, C).diagonal)
