@@ -3,8 +3,8 @@ scenario, each XLA operation's time attributed to the jaxmm function that emitte
 
 How: the solve's iterations program (``optimise._advance``, the one every solve runs) is
 compiled once; it runs ``--skip`` iterations from the published guess, then ``--iterations``
-more twice from that point, once plain (the wall time per iteration) and once under
-``jax.profiler`` (the profiler's own events slow it; the plain time is the true one). Every
+more from that point, twice plainly (the faster gives the wall time per iteration) and once
+under ``jax.profiler`` (the profiler's own events slow it; the plain time is the true one). Every
 XLA operation the trace shows (a fusion, a dot, a copy …) is looked up in the compiled
 program's text, whose metadata keep the Python stack that traced it, and its time goes:
 
@@ -94,33 +94,28 @@ def stack_tables(text):
 
 def operation_times(trace_directory):
     """({operation name: total ns}, {operation name: count}, the span of the traced run [ns], the
-    time inside operations [ns]) from the trace ``jax.profiler`` wrote."""
+    time during which some operation ran [ns]) from the trace ``jax.profiler`` wrote."""
     files = sorted(pathlib.Path(trace_directory).rglob("*.xplane.pb"))
     if not files:
         sys.exit(f"jax.profiler wrote no trace under {trace_directory}")
     profile = jax.profiler.ProfileData.from_file(str(files[-1]))
+    # XLA's threads each have a line of events; their operations are merged on one time axis.
+    events = sorted((e.start_ns, e.end_ns, e.name) for plane in profile.planes for line in plane.lines
+                    if line.name.startswith("tf_XLA") for e in line.events)
     times, counts = collections.Counter(), collections.Counter()
-    span = inside = 0
-    for plane in profile.planes:
-        for line in plane.lines:
-            if not line.name.startswith("tf_XLA"):
-                continue
-            events = sorted((e.start_ns, e.end_ns, e.name) for e in line.events)
-            if not events:
-                continue
-            span = max(span, events[-1][1] - events[0][0])
-            merged = None
-            for start, end, name in events:
-                if name.startswith(CONTAINERS):
-                    continue
-                times[name] += end - start
-                counts[name] += 1
-                if merged is None or start > merged[1]:
-                    inside += 0 if merged is None else merged[1] - merged[0]
-                    merged = [start, end]
-                else:
-                    merged[1] = max(merged[1], end)
+    span = max(end for _, end, _ in events) - events[0][0] if events else 0
+    inside, merged = 0, None
+    for start, end, name in events:
+        if name.startswith(CONTAINERS):
+            continue
+        times[name] += end - start
+        counts[name] += 1
+        if merged is None or start > merged[1]:
             inside += 0 if merged is None else merged[1] - merged[0]
+            merged = [start, end]
+        else:
+            merged[1] = max(merged[1], end)
+    inside += 0 if merged is None else merged[1] - merged[0]
     return times, counts, span, inside
 
 
