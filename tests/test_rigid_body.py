@@ -100,6 +100,33 @@ def test_gradients_of_kinematics_and_cmm(model, configurations):
     check_grads(jax.jit(lambda q: jaxmm.centroidal_momentum(model, q, nu)), (q,), order=1, modes=["fwd", "rev"])
 
 
+def test_kinematics_derivatives_in_one_pass_equal_autodiff(model, configurations):
+    """``centroidal_kinematics_derivatives`` (Jacobian and weighted curvature from one pass) gives
+    the kinematics, ``jax.jacfwd`` of them and ``jax.hessian`` of their weighted sum (each through
+    the plain kinematics); the kinematics are affine in the base position, whose tangents are left out."""
+    from jaxmm import centroidal
+
+    indices = model.frame_indices(FRAMES)
+    rng = np.random.default_rng(6)
+    shapes = jax.eval_shape(lambda q: centroidal._bundle(model, q, indices), configurations[0])
+    weights = jax.tree.map(lambda s: jnp.asarray(rng.normal(size=s.shape)), shapes)
+
+    def weighted(q):
+        out = centroidal._bundle(model, q, indices)
+        return sum(jnp.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out)))
+
+    fused = jax.jit(lambda q: centroidal.centroidal_kinematics_derivatives(model, q, FRAMES, weights))
+    plain = jax.jit(lambda q: (centroidal._bundle(model, q, indices),
+                               jax.jacfwd(lambda q: centroidal._bundle(model, q, indices))(q), jax.hessian(weighted)(q)))
+    for q in configurations[:3]:
+        (kinematics, jacobian, curvature), (kinematics_ref, jacobian_ref, hessian) = fused(q), plain(q)
+        for a, b in zip(jax.tree.leaves((kinematics, jacobian)), jax.tree.leaves((kinematics_ref, jacobian_ref))):
+            assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * max(1.0, np.abs(b).max())
+        assert np.abs(curvature - hessian).max() <= 1e-11 * np.abs(hessian).max()
+        assert np.abs(curvature[:3, :3]).max() == 0.0  # no tangent of the base position is taken
+        assert np.abs(hessian[:3]).max() <= 1e-10 * np.abs(hessian).max()  # affine in the base position
+
+
 def test_gradients_with_respect_to_model_parameters(model, configurations):
     """Masses and placements are array leaves: the CoM is differentiable in them."""
     q = jnp.asarray(configurations[2])

@@ -637,7 +637,9 @@ def advance(nlp, state, options=Options(), until=None):
         )
 
     def body(state):
-        B = stagewise.blocks(nlp, state.P[0], state.P[1])
+        # The path multipliers let the blocks carry the path Hessian's kinematic curvature,
+        # computed with their Jacobian (``newton``'s curvature uses the same multipliers).
+        B = stagewise.blocks(nlp, state.P[0], state.P[1], path_multipliers=(state.y[0] * row_scale[0], state.y[2] * row_scale[2]))
         if options.max_restoration_iterations == 0:
             return newton(state, B)
         return jax.lax.cond(state.restoring, restoration, newton, state, B)

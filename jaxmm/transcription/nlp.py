@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm.centroidal import centroidal_kinematics_curvature
+from jaxmm.centroidal import centroidal_kinematics_curvature, centroidal_kinematics_derivatives
 from jaxmm.transcription import constraints, costs
 from jaxmm.transcription.stagewise import RowSupport, StagewiseFunctions, StagewiseNLP
 from jaxmm.transcription.variables import Trajectory
@@ -75,10 +75,30 @@ def _kinematics_at(task, z):
     return constraints.knot_kinematics(task, q0), jax.jacfwd(constraints.knot_kinematics, argnums=1)(task, q0)
 
 
+def _kinematics_with_curvature(task, z, theta, y_equality, y_inequality):
+    """(κ, ∂κ/∂q, Σ w ∇²κ) at z̃ with w = ∂(y·c)/∂κ, the Jacobian and the curvature from one pass
+    (``centroidal_kinematics_derivatives``): what ``_path_hessian`` needs at these multipliers."""
+    robot = task.robot
+    q0 = _configuration(task, z)
+    w0 = jnp.concatenate([z, theta])
+    weights = jax.grad(_weighted_rows(task, y_equality, y_inequality), argnums=1)(
+        w0, constraints.knot_kinematics(task, q0))
+    return centroidal_kinematics_derivatives(robot.model, q0, robot.contact_frames + robot.jet_frames, weights)
+
+
+def _weighted_rows(task, y_equality, y_inequality):
+    """(w, kinematics) ↦ y_e·e + y_g·g at w = (z̃, θ) for the given kinematics."""
+    def weighted(w, kinematics):
+        e, g = _path_rows(task, w, kinematics)
+        return jnp.dot(y_equality, e) + jnp.dot(y_inequality, g)
+
+    return weighted
+
+
 def _linearised(task, z, linearisation, fn):
     """fn(w, kinematics) as a function of w = (z̃', θ) with the kinematics linearised at z̃:
     κ + ∂κ/∂q (q(z̃') − q(z̃)). Its first derivatives at (z̃, θ) are fn's exact ones."""
-    kin0, jacobian = linearisation
+    kin0, jacobian = linearisation[:2]
     q0 = _configuration(task, z)
 
     def at(w):
@@ -95,14 +115,17 @@ def _path_rows(task, w, kinematics):
             _concat(constraints.path_inequalities(task, knot, total_time, kinematics), constraints.PATH_INEQUALITIES))
 
 
-def _path_jacobian(task, z, theta):
+def _path_jacobian(task, z, theta, y_equality=None, y_inequality=None):
     """Both path functions' Jacobians w.r.t. (z̃, θ) by the chain rule through the kinematics'
     Jacobian (computed once, and returned for ``_path_hessian`` to reuse): the rows'
     explicit derivatives with κ held fixed (cheap algebra, nz + ng tangents), plus, in q's
     columns alone, their derivatives through κ (n_q tangents through the linearised
-    kinematics): ((e_z, e_θ), (g_z, g_θ), (κ, ∂κ/∂q))."""
+    kinematics): ((e_z, e_θ), (g_z, g_θ), (κ, ∂κ/∂q)). Given the path multipliers, the
+    kinematics' curvature at them comes from the same pass as their Jacobian and is returned
+    too, (κ, ∂κ/∂q, Σ w ∇²κ), for ``_path_hessian`` at those multipliers."""
     nz = z.shape[0]
-    linearisation = _kinematics_at(task, z)
+    linearisation = (_kinematics_at(task, z) if y_equality is None
+                     else _kinematics_with_curvature(task, z, theta, y_equality, y_inequality))
     w0 = jnp.concatenate([z, theta])
     explicit = jax.jacfwd(lambda w: _path_rows(task, w, linearisation[0]))(w0)
     q = _configuration_columns(task.layout)
@@ -117,23 +140,27 @@ def _path_hessian(task, z, theta, y_equality, y_inequality, linearisation=None):
     ``jax.hessian`` of the constraints with κ linearised at q (cheap algebra), plus Σ w ∇²κ with
     w = ∂(y·c)/∂κ, where only q's n_q tangents traverse the kinematics (``jax.hessian`` of the whole
     knot would push all nz + ng of them through it). linearisation: (κ, ∂κ/∂q) at z̃ from
-    ``_path_jacobian`` (None: computed here)."""
-    nz = z.shape[0]
+    ``_path_jacobian``, or (κ, ∂κ/∂q, Σ w ∇²κ) if it was given these multipliers (None: computed
+    here)."""
     robot = task.robot
     linearisation = _kinematics_at(task, z) if linearisation is None else linearisation
-
-    def weighted(w, kinematics):
-        e, g = _path_rows(task, w, kinematics)
-        return jnp.dot(y_equality, e) + jnp.dot(y_inequality, g)
-
+    weighted = _weighted_rows(task, y_equality, y_inequality)
     w0 = jnp.concatenate([z, theta])
-    hessian = _hessian_over(_linearised(task, z, linearisation, weighted), w0, _path_curvature_columns(task.layout))
-    weights = jax.grad(weighted, argnums=1)(w0, linearisation[0])
-    curvature = centroidal_kinematics_curvature(
-        robot.model, _configuration(task, z), robot.contact_frames + robot.jet_frames, weights
-    )
-    selection = jax.jacfwd(lambda z: _configuration(task, z))(z)  # q is linear in z̃
-    return hessian.at[:nz, :nz].add(selection.T @ curvature @ selection)
+    hessian = _linearised_hessian(
+        _linearised(task, z, linearisation, weighted), lambda w: weighted(w, linearisation[0]), w0,
+        _path_curvature_columns(task.layout), _configuration_columns(task.layout))
+    if len(linearisation) == 3:
+        curvature = linearisation[2]
+    else:
+        weights = jax.grad(weighted, argnums=1)(w0, linearisation[0])
+        curvature = centroidal_kinematics_curvature(
+            robot.model, _configuration(task, z), robot.contact_frames + robot.jet_frames, weights
+        )
+    # q = d_q z̃_q (the scaling of q's columns): the chain rule's Sᵀ ∇²κ S is a scaled scatter
+    # into q's columns (the dense (nz × n_q) products cost ≈ 15 ms per iteration at N = 70).
+    columns = _configuration_columns(task.layout)
+    scale = task.layout.scale()[columns]
+    return hessian.at[np.ix_(columns, columns)].add(curvature * scale[:, None] * scale[None, :])
 
 
 def _columns(layout, field, entries=slice(None), offset=0):
@@ -181,6 +208,26 @@ def _hessian_over(fn, w0, columns):
     gradient = jax.grad(lambda v: fn(w0.at[columns].set(v)))
     tangents = jnp.eye(columns.size, dtype=w0.dtype)
     inner = jax.lax.map(lambda e: jax.jvp(gradient, (v0,), (e,))[1], tangents, batch_size=16)
+    return jnp.zeros((w0.shape[0],) * 2, w0.dtype).at[np.ix_(columns, columns)].set(inner)
+
+
+def _linearised_hessian(fn, fixed, w0, columns, through):
+    """``_hessian_over(fn, w0, columns)`` for fn(w) = φ(w, κ(w)) with κ affine in w[through] alone
+    (``_linearised``) and fixed(w) = φ(w, κ(w0)): only the tangents of ``through`` (⊂ columns)
+    go through κ's products, which dominate (30 of iRonCub's 122 tangents); the Hessian among
+    the other columns is fixed's, and their rows of ``through``'s columns come by symmetry."""
+    columns, through = np.asarray(columns), np.asarray(through)
+    inside = np.isin(columns, through)
+    kinematic, other = np.flatnonzero(inside), np.flatnonzero(~inside)
+    v0 = w0[columns]
+    gradient = jax.grad(lambda v: fn(w0.at[columns].set(v)))
+    tangents = jnp.eye(columns.size, dtype=w0.dtype)
+    across = jax.lax.map(lambda e: jax.jvp(gradient, (v0,), (e,))[1], tangents[kinematic], batch_size=16)
+    fixed_gradient = jax.grad(lambda v: fixed(w0.at[columns[other]].set(v)))
+    among = jax.lax.map(lambda e: jax.jvp(fixed_gradient, (v0[other],), (e,))[1],
+                        jnp.eye(other.size, dtype=w0.dtype), batch_size=16)
+    inner = (jnp.zeros((columns.size,) * 2, w0.dtype).at[np.ix_(other, other)].set(among)
+             .at[:, kinematic].set(across.T).at[kinematic, :].set(across))
     return jnp.zeros((w0.shape[0],) * 2, w0.dtype).at[np.ix_(columns, columns)].set(inner)
 
 

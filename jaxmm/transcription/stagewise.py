@@ -39,10 +39,13 @@ class StagewiseFunctions:
     ints in 0..2 nz − 1, static: from args' static fields) in which the transition functions
     are nonlinear for a fixed θ; they must be linear in every other entry. The solver then
     takes their Hessian over those columns alone (and θ's rows by forward-over-reverse);
-    path_jacobian (optional): (args, z, θ) → ((∂e/∂z, ∂e/∂θ), (∂g/∂z, ∂g/∂θ), linearisation):
-    both path functions' Jacobians from one pass, plus a pytree of what the path Hessian can
-    reuse at the same point (on a robot: the kinematics and their Jacobian, which the Hessian's
-    chain rule needs again), handed to ``path_hessian`` by the solver;
+    path_jacobian (optional): (args, z, θ[, y_e, y_g]) → ((∂e/∂z, ∂e/∂θ), (∂g/∂z, ∂g/∂θ),
+    linearisation): both path functions' Jacobians from one pass, plus a pytree of what the path
+    Hessian can reuse at the same point (on a robot: the kinematics and their Jacobian, which the
+    Hessian's chain rule needs again), handed to ``path_hessian`` by the solver; given the path
+    multipliers it may also hold what the path Hessian needs at those multipliers (on a robot:
+    the kinematics' curvature, from the same pass as their Jacobian), and ``path_hessian`` must
+    then be called with the same multipliers;
     row_supports (optional): (args) → {group: tuple of ``RowSupport``}, for each of the four
     constraint groups ("path_equality", …) a partition of its rows into consecutive runs with the
     columns of z_k (and z_{k+1}) they can depend on: the Jacobians' sparsity pattern, static
@@ -167,18 +170,22 @@ def residuals(nlp, Z, theta):
     )
 
 
-def blocks(nlp, Z, theta):
+def blocks(nlp, Z, theta, path_multipliers=None):
     """Block Jacobians of every constraint and the cost's gradient and Hessian blocks.
 
     Per-knot ``jax.jacfwd`` vmapped over the knots: no dense Jacobian is ever formed. The
     path equalities and inequalities come from ``StagewiseFunctions.path_jacobian`` when given
     (one pass for both, and what the path Hessian can reuse kept in ``path_linearisation``).
+    path_multipliers (optional): (y_e (K, me), y_g (K, mg)), handed to ``path_jacobian`` so that
+    ``path_linearisation`` may hold the path Hessian's costly part at them: then
+    ``constraint_curvature`` must get the same path multipliers.
     """
     f, a = nlp.functions, nlp.args
+    y = () if path_multipliers is None else tuple(path_multipliers)
 
-    def path_jacobian(args, z, theta):
+    def path_jacobian(args, z, theta, *y):
         if f.path_jacobian is not None:
-            return f.path_jacobian(args, z, theta)
+            return f.path_jacobian(args, z, theta, *y)
         e_z, e_theta = jax.jacfwd(f.path_equality, argnums=(1, 2))(args, z, theta)
         g_z, g_theta = jax.jacfwd(f.path_inequality, argnums=(1, 2))(args, z, theta)
         return (e_z, e_theta), (g_z, g_theta), None
@@ -195,7 +202,8 @@ def blocks(nlp, Z, theta):
         cost_zz, cost_ztheta, cost_thetatheta = jax.vmap(f.knot_cost_hessian, in_axes=(None, 0, None, 0))(
             a, Z, theta, nlp.knot_data)
     global_grad = jax.grad(f.global_cost, argnums=1)
-    (pe_z, pe_theta), (pi_z, pi_theta), linearisation = jax.vmap(path_jacobian, in_axes=(None, 0, None))(a, Z, theta)
+    (pe_z, pe_theta), (pi_z, pi_theta), linearisation = jax.vmap(path_jacobian, in_axes=(None, 0, None) + (0,) * len(y))(
+        a, Z, theta, *y)
     te_z, te_znext, te_theta = transition(f.transition_equality)
     ti_z, ti_znext, ti_theta = transition(f.transition_inequality)
     return Blocks(
