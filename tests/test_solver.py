@@ -175,6 +175,7 @@ def test_the_restoration_phase_leaves_the_infeasible_point_of_wachter_and_biegle
     assert not np.any(np.asarray(stuck.history)[: int(stuck.iterations), ip.HISTORY_COLUMNS.index("restoration")] == 1)
 
 
+@pytest.mark.slow  # three compiled solves (≈ 47 s): keeps the default run under 20 minutes
 def test_slacks_start_at_the_rows_of_the_pushed_guess_and_every_slack_setting_reaches_the_same_optimum():
     """``Options.slack_start``: ``"pushed"`` (default) starts the slacks at the rows' values at the
     guess pushed inside its bounds (IPOPT's), ``"guess"`` at the guess itself; ``ipopt_slacks``
