@@ -560,7 +560,7 @@ def advance(nlp, state, options=Options(), until=None):
         # The rows enter with weight 1: [H Jᵀ; J −I] is the Gauss–Newton system of ½‖c‖².
         weights = (jnp.ones_like(c[0]), jnp.ones_like(c[1])) + tuple(
             jnp.where(a, 1.0 / (i + 1.0), 0.0) for i, a in zip(inv_sigma, active))
-        D, L, Bd, C = rows.add(*(rows.gram(r, w, K) for r, w in zip(J, weights)))
+        D, L, Bd, C = rows.grams(J, weights, K)
         D = fz[:, :, None] * (D + jax.vmap(jnp.diag)(sigma[0] + zeta * D2[0])) * fz[:, None, :] + jax.vmap(jnp.diag)(fixed_z)
         C = ft[:, None] * (C + jnp.diag(sigma[1] + zeta * D2[1])) * ft[None, :] + jnp.diag(fixed_t)
         chol = linalg.factor(D, fz[1:, :, None] * L * fz[:-1, None, :], fz[:, :, None] * Bd * ft[None, None, :], C,
@@ -708,13 +708,15 @@ def advance(nlp, state, options=Options(), until=None):
             stagewise.constraint_curvature(nlp, Z, theta, *(yi * s for yi, s in zip(y, row_scale)),
                                            path_linearisation=B.path_linearisation),
         )
+        # The Gram products added into the Lagrangian's blocks: separate (K, n, n) arrays, summed
+        # after, cost a pass over the blocks each.
         if options.ipopt_slacks:
-            equalities = rows.add(lagrangian, *(rows.gram(r, w, K) for r, w in zip(J[:2], slack_terms(0.0)[1][:2])))
+            equalities = rows.grams(J[:2], slack_terms(0.0)[1][:2], K, into=lagrangian)
 
             def condensed(delta):
-                return rows.add(equalities, *(rows.gram(r, w, K) for r, w in zip(J[2:], slack_terms(delta)[1][2:])))
+                return rows.grams(J[2:], slack_terms(delta)[1][2:], K, into=equalities)
         else:
-            everything = rows.add(lagrangian, *(rows.gram(r, w, K) for r, w in zip(J, slack_terms(0.0)[1])))
+            everything = rows.grams(J, slack_terms(0.0)[1], K, into=lagrangian)
 
             def condensed(delta):
                 return everything
@@ -726,11 +728,6 @@ def advance(nlp, state, options=Options(), until=None):
             D, L, Bd, C = hessian
             return (fz[:, :, None] * D * fz[:, None, :] + jax.vmap(jnp.diag)(fixed_z), fz[1:, :, None] * L * fz[:-1, None, :],
                     fz[:, :, None] * Bd * ft[None, None, :], ft[:, None] * C * ft[None, :] + jnp.diag(fixed_t))
-
-        def regularised(hessian, delta):
-            """``fixed_out`` with Σ + δ_w on the free variables' diagonal."""
-            D, L, Bd, C = fixed_out(hessian)
-            return (D + jax.vmap(jnp.diag)(fz * (sigma[0] + delta)), L, Bd, C + jnp.diag(ft * (sigma[1] + delta)))
 
         if not options.ipopt_slacks:
             unshifted = fixed_out(everything)
@@ -760,16 +757,22 @@ def advance(nlp, state, options=Options(), until=None):
 
         delta_w, chol, factored, work = jax.lax.while_loop(needs_more, grow, (state.forced, chol0, ok0, attempted(chol0)))
         factorisations = work.astype(dtype) / K
-        hessian = regularised(lagrangian, delta_w)
         delta_s = delta_w if options.ipopt_slacks else 0.0
         inv_sigma, weights = slack_terms(delta_s)
+
+        def regularised_times(dz, dt):
+            """``fixed_out(lagrangian)`` with Σ + δ_w on the free variables' diagonal, times (dz,
+            dt), the masks and the diagonal applied to the vectors (no copy of the blocks)."""
+            hz, ht = linalg.matvec(*lagrangian, dz * fz, dt * ft)
+            return (hz * fz + (fixed_z + fz * (sigma[0] + delta_w)) * dz,
+                    ht * ft + (fixed_t + ft * (sigma[1] + delta_w)) * dt)
 
         def kkt_solve(ax, a_s, a_c):
             return _condensed_solve(chol, J, weights, inv_sigma, (fz, ft), K, ax, a_s, a_c)
 
         def kkt_residual(ax, a_s, a_c, dx, ds, dy):
             """Residual of the exact KKT system (δ_c = 0) at the step (dx, ds, dy)."""
-            hz, ht = linalg.matvec(*hessian, *dx)
+            hz, ht = regularised_times(*dx)
             for r, dv in zip(J, dy):
                 pz, pt = rows.pull(r, dv, K)
                 hz, ht = hz + pz, ht + pt

@@ -36,8 +36,11 @@ from jax.scipy.linalg import solve_triangular
 @dataclasses.dataclass(frozen=True)
 class Chain:
     """One chain of a two-ended block Cholesky factorisation (``factor``), M slots: the factors of
-    its diagonal blocks in the order it factored them, blocks (M, n, n), and the trailing s
-    columns of their couplings to the next block of the chain, couplings (M, n, s)."""
+    its diagonal blocks in the order it factored them, transposed (upper triangular), blocks
+    (M, n, n), and the trailing s columns of their couplings to the next block of the chain,
+    couplings (M, n, s). Transposed because LAPACK, which factors and solves, keeps matrices
+    column by column: a row-major Lᵀ is a column-major L, read without a transposing copy (one
+    per block and solve; ≈ 7 % of a take-off iteration, session 33)."""
 
     blocks: jax.Array
     couplings: jax.Array
@@ -72,7 +75,8 @@ class BlockCholesky:
     def diagonal(self):
         """The factors of the diagonal blocks in knot order, (K, n, n) (a copy, for inspection)."""
         K = self.border_solution.shape[-3]
-        return jnp.concatenate([self.forward.blocks, self.middle[None], self.backward.blocks[: K - 1 - K // 2][::-1]])
+        chains = jnp.concatenate([self.forward.blocks, _stored(self.middle)[None], self.backward.blocks[: K - 1 - K // 2][::-1]])
+        return jnp.swapaxes(chains, -1, -2)
 
 
 def _factor_tridiagonal(D, L, order, s, shift):
@@ -102,13 +106,13 @@ def _factor_tridiagonal(D, L, order, s, shift):
 
     def below(previous, k):
         """(L_{k−1} Lc_{k−1}^{−T})ᵀ's non-zero rows (s, n), for block k of the forward chain (previous:
-        Lc_{k−1}): they need only the trailing s × s block of Lc_{k−1}."""
-        return solve_triangular(previous[n - s :, n - s :], coupling(k - 1).T, lower=True)
+        Lc_{k−1} as the chain stores it): they need only the trailing s × s block of Lc_{k−1}."""
+        return solve_triangular(previous[n - s :, n - s :].T, coupling(k - 1).T, lower=True)
 
     def above(following, k):
         """Lc_{k+1}^{−1} L_k's non-zero columns (n, s), for block k of the backward chain
-        (following: Lc_{k+1}): their Gram product touches only the last s rows and columns of block k."""
-        return solve_triangular(following, coupling(k), lower=True)
+        (following: Lc_{k+1} as the chain stores it): their Gram product touches only the last s rows and columns of block k."""
+        return solve_triangular(following.T, coupling(k), lower=True)
 
     def minus_above(A, Y):
         return A.at[n - s :, n - s :].add(-(Y.T @ Y))
@@ -130,8 +134,8 @@ def _factor_tridiagonal(D, L, order, s, shift):
         backward = jnp.linalg.cholesky(minus_above(block(K - 1 - j), Y))
         has_b = j < back  # K even: the backward chain has no block at the last step
         ok_f, ok_b = positive(forward), positive(backward) | ~has_b
-        Lf, Wf = Lf.at[j].set(forward), Wf.at[j - 1].set(Wt.T)
-        Lb, Wb = Lb.at[j].set(backward), Wb.at[j - 1].set(Y)
+        Lf, Wf = Lf.at[j].set(_stored(forward)), Wf.at[j - 1].set(Wt.T)
+        Lb, Wb = Lb.at[j].set(_stored(backward)), Wb.at[j - 1].set(Y)
         return j + 1, Lf, Wf, Lb, Wb, count + ok_f + (ok_b & has_b), ok_f & ok_b
 
     # The factors are updated in place, indexed, rather than stacked as a scan's outputs
@@ -142,10 +146,10 @@ def _factor_tridiagonal(D, L, order, s, shift):
     count, ok = jnp.asarray(0), jnp.asarray(True)
     if M >= 1:
         first = jnp.linalg.cholesky(block(0))
-        Lf, count, ok = Lf.at[0].set(first), count + positive(first), positive(first)
+        Lf, count, ok = Lf.at[0].set(_stored(first)), count + positive(first), positive(first)
     if back >= 1:
         last = jnp.linalg.cholesky(block(K - 1))
-        Lb, count, ok = Lb.at[0].set(last), count + positive(last), ok & positive(last)
+        Lb, count, ok = Lb.at[0].set(_stored(last)), count + positive(last), ok & positive(last)
     if M >= 2:
         _, Lf, Wf, Lb, Wb, count, ok = jax.lax.while_loop(running, step, (jnp.asarray(1), Lf, Wf, Lb, Wb, count, ok))
     # The middle block, computed whatever the chains found (one block; a branch would copy them).
@@ -169,11 +173,11 @@ def _solve_tridiagonal(forward, middle, backward, R):
     s = forward.couplings.shape[-1]
     Lf, Wf, Lb, Wb = forward.blocks, forward.couplings, backward.blocks, backward.couplings
 
-    def lower(factor, rhs):
-        return solve_triangular(factor, rhs, lower=True)
+    def lower(stored, rhs):
+        return solve_triangular(stored.T, rhs, lower=True)
 
-    def upper(factor, rhs):
-        return solve_triangular(factor, rhs, lower=True, trans="T")
+    def upper(stored, rhs):
+        return solve_triangular(stored.T, rhs, lower=True, trans="T")
 
     def inward(j, carry):
         yf, yb = carry
@@ -193,7 +197,7 @@ def _solve_tridiagonal(forward, middle, backward, R):
         rhs = rhs - Wf[M - 1] @ yf[M - 1][n - s :]
     if back >= 1:
         rhs = rhs.at[n - s :].add(-(Wb[back - 1].T @ yb[back - 1]))
-    x_middle = upper(middle, lower(middle, rhs))
+    x_middle = upper(_stored(middle), lower(_stored(middle), rhs))
 
     def outward(i, carry):
         xf, xb, previous_f, previous_b = carry
@@ -207,6 +211,11 @@ def _solve_tridiagonal(forward, middle, backward, R):
     if M >= 1:
         xf, xb, _, _ = jax.lax.fori_loop(0, M, outward, (xf, xb, x_middle, x_middle))
     return jnp.concatenate([xf, x_middle[None], xb[:back][::-1]])
+
+
+def _stored(factor):
+    """A lower triangular factor as a chain stores it: transposed (``Chain``)."""
+    return jnp.swapaxes(factor, -1, -2)
 
 
 def coupled_order(n, coupled):

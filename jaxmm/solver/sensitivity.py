@@ -354,7 +354,7 @@ def _kkt(nlp, Z, theta, y, barrier, options):
         inverse = jnp.where(sigma > 0, 1.0 / jnp.where(sigma > 0, sigma, 1.0), 0.0)
         row_diagonal.append(scales[2 + i] ** 2 * inverse / alpha)
     weights = [1.0 / (d + 1.0 / options.penalty) for d in row_diagonal]
-    D, L, Bd, C = rows.add(hessian, *(rows.gram(r, w, K) for r, w in zip(jacobians, weights)))
+    D, L, Bd, C = rows.grams(jacobians, weights, K, into=hessian)
 
     def attempt(delta):
         return linalg.factor(D + jax.vmap(jnp.diag)(1 - free_z + delta * free_z), L, Bd,

@@ -146,9 +146,6 @@ def _path_hessian(task, z, theta, y_equality, y_inequality, linearisation=None):
     linearisation = _kinematics_at(task, z) if linearisation is None else linearisation
     weighted = _weighted_rows(task, y_equality, y_inequality)
     w0 = jnp.concatenate([z, theta])
-    hessian = _linearised_hessian(
-        _linearised(task, z, linearisation, weighted), lambda w: weighted(w, linearisation[0]), w0,
-        _path_curvature_columns(task.layout), _configuration_columns(task.layout))
     if len(linearisation) == 3:
         curvature = linearisation[2]
     else:
@@ -156,11 +153,13 @@ def _path_hessian(task, z, theta, y_equality, y_inequality, linearisation=None):
         curvature = centroidal_kinematics_curvature(
             robot.model, _configuration(task, z), robot.contact_frames + robot.jet_frames, weights
         )
-    # q = d_q z̃_q (the scaling of q's columns): the chain rule's Sᵀ ∇²κ S is a scaled scatter
-    # into q's columns (the dense (nz × n_q) products cost ≈ 15 ms per iteration at N = 70).
-    columns = _configuration_columns(task.layout)
-    scale = task.layout.scale()[columns]
-    return hessian.at[np.ix_(columns, columns)].add(curvature * scale[:, None] * scale[None, :])
+    # q = d_q z̃_q (the scaling of q's columns): the chain rule's Sᵀ ∇²κ S is scaled and added to
+    # q's block (the dense (nz × n_q) products cost ≈ 15 ms per iteration at N = 70).
+    q = _configuration_columns(task.layout)
+    scale = task.layout.scale()[q]
+    return _linearised_hessian(
+        _linearised(task, z, linearisation, weighted), lambda w: weighted(w, linearisation[0]), w0,
+        _path_curvature_columns(task.layout), q, curvature * scale[:, None] * scale[None, :])
 
 
 def _columns(layout, field, entries=slice(None), offset=0):
@@ -208,17 +207,42 @@ def _hessian_over(fn, w0, columns):
     gradient = jax.grad(lambda v: fn(w0.at[columns].set(v)))
     tangents = jnp.eye(columns.size, dtype=w0.dtype)
     inner = jax.lax.map(lambda e: jax.jvp(gradient, (v0,), (e,))[1], tangents, batch_size=16)
-    return jnp.zeros((w0.shape[0],) * 2, w0.dtype).at[np.ix_(columns, columns)].set(inner)
+    return _embedded(inner, columns, w0.shape[0])
 
 
-def _linearised_hessian(fn, fixed, w0, columns, through):
-    """``_hessian_over(fn, w0, columns)`` for fn(w) = φ(w, κ(w)) with κ affine in w[through] alone
-    (``_linearised``) and fixed(w) = φ(w, κ(w0)): only the tangents of ``through`` (⊂ columns)
-    go through κ's products, which dominate (30 of iRonCub's 122 tangents); the Hessian among
-    the other columns is fixed's, and their rows of ``through``'s columns come by symmetry."""
+def _embedded(block, columns, size):
+    """The (c, c) ``block`` at the rows and columns ``columns`` (static, increasing) of a
+    (size, size) zero matrix, from slices of it and zeros: XLA's CPU scatter into zeros cost
+    ≈ 15 ms per take-off iteration (N = 70) for the path Hessian alone (session 33)."""
+    columns = np.asarray(columns)
+    cuts = np.flatnonzero(np.diff(columns) != 1) + 1
+    runs = [(int(r[0]), int(r[-1]) + 1) for r in np.split(columns, cuts) if r.size]
+
+    def along(x, axis):
+        pieces, at, used = [], 0, 0
+        for start, stop in runs + [(size, size)]:
+            if start > at:
+                pieces.append(jnp.zeros(x.shape[:axis] + (start - at,) + x.shape[axis + 1:], x.dtype))
+            if stop > start:
+                pieces.append(jax.lax.slice_in_dim(x, used, used + stop - start, axis=axis))
+            at, used = stop, used + stop - start
+        return jnp.concatenate(pieces, axis=axis)
+
+    return along(along(block, 0), 1)
+
+
+def _linearised_hessian(fn, fixed, w0, columns, through, curvature):
+    """``_hessian_over(fn, w0, columns)`` plus ``curvature`` (t, t) in the block of ``through``,
+    for fn(w) = φ(w, κ(w)) with κ affine in w[through] alone (``_linearised``) and fixed(w) =
+    φ(w, κ(w0)): only the tangents of ``through`` (⊂ columns, consecutive among them) go through
+    κ's products, which dominate (30 of iRonCub's 122 tangents); the Hessian among the other
+    columns is fixed's, and their rows of ``through``'s columns come by symmetry."""
     columns, through = np.asarray(columns), np.asarray(through)
     inside = np.isin(columns, through)
     kinematic, other = np.flatnonzero(inside), np.flatnonzero(~inside)
+    a, b = int(kinematic[0]), int(kinematic[-1]) + 1
+    if b - a != kinematic.size:
+        raise ValueError("the kinematic columns must be consecutive among the curvature columns")
     v0 = w0[columns]
     gradient = jax.grad(lambda v: fn(w0.at[columns].set(v)))
     tangents = jnp.eye(columns.size, dtype=w0.dtype)
@@ -226,9 +250,10 @@ def _linearised_hessian(fn, fixed, w0, columns, through):
     fixed_gradient = jax.grad(lambda v: fixed(w0.at[columns[other]].set(v)))
     among = jax.lax.map(lambda e: jax.jvp(fixed_gradient, (v0[other],), (e,))[1],
                         jnp.eye(other.size, dtype=w0.dtype), batch_size=16)
-    inner = (jnp.zeros((columns.size,) * 2, w0.dtype).at[np.ix_(other, other)].set(among)
-             .at[:, kinematic].set(across.T).at[kinematic, :].set(across))
-    return jnp.zeros((w0.shape[0],) * 2, w0.dtype).at[np.ix_(columns, columns)].set(inner)
+    inner = jnp.block([[among[:a, :a], across[:, :a].T, among[:a, a:]],
+                       [across[:, :a], across[:, a:b] + curvature, across[:, b:]],
+                       [among[a:, :a], across[:, b:].T, among[a:, a:]]])
+    return _embedded(inner, columns, w0.shape[0])
 
 
 def _with_global_rows(fn, w0, start, hessian):
