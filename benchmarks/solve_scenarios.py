@@ -64,6 +64,7 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import logging  # noqa: E402
+import pathlib  # noqa: E402
 import statistics  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -73,7 +74,7 @@ import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
 from machine import format_time, log, machine_lines, render, timed  # noqa: E402
-from jaxmm import analysis, optimise, tasks  # noqa: E402
+from jaxmm import analysis, io, optimise, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
 from jaxmm.transcription import stagewise  # noqa: E402
@@ -138,8 +139,10 @@ def verdict(report):
     return "ok" if report.ok else f"FAILED ({len(report.failed)})"
 
 
-def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack_penalty, coarse):
-    """Everything printed about one scenario, as a dict; IPOPT too if urdf_path is given."""
+def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack_penalty, coarse, save=None):
+    """Everything printed about one scenario, as a dict; IPOPT too if urdf_path is given; our
+    solution written to the directory ``save`` (``jaxmm.io.save``: trajectory, multipliers, the
+    per-iteration history) if given."""
     task = tasks.scenario(name, knots=knots, slack_penalty=slack_penalty)
     guess = tasks.initial_guess(task)
     label = name if slack_penalty == "linear" else f"{name} ({slack_penalty} slacks)"
@@ -159,6 +162,10 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
         factorisations=per_iteration(result.solution, "factorisations"), status=result.status.message,
         report=analysis.validate(task, result.trajectory),
     )  # fmt: skip
+    if save is not None:
+        path = pathlib.Path(save) / f"{name}_N{task.n_intervals}.npz"
+        io.save(path, task, result)
+        log(f"{name}: solution written to {path}")
     if urdf_path is not None:
         from jaxmm.reference import solve_ipopt  # the reference extra (casadi, adam-robotics)
 
@@ -274,7 +281,12 @@ def main():
                              "(default, IPOPT's) or of the guess itself")
     parser.add_argument("--coarse", type=int, default=None,
                         help="solve each scenario from the solution of its version on this many intervals (same horizons)")
+    parser.add_argument("--save", default=None, metavar="DIR",
+                        help="write each of our solutions to DIR/<scenario>_N<N>.npz (jaxmm.io.save; with its "
+                             "per-iteration history)")
     args = parser.parse_args()
+    if args.save is not None:
+        pathlib.Path(args.save).mkdir(parents=True, exist_ok=True)
 
     run_scenarios = args.scenarios is not None or args.knots is None
     names = parse_names(parser, args.scenarios, default=list(tasks.SCENARIOS))
@@ -297,7 +309,7 @@ def main():
                 rows.append(run_scenario(
                     name, args.knots_override, dataclasses.replace(options, ipopt_slacks=name in slack_names), args.repeats,
                     urdf.name if args.ipopt else None, args.max_iterations,
-                    args.slack_penalty, args.coarse,
+                    args.slack_penalty, args.coarse, args.save,
                 ))
     knot_table = None
     if args.knots is not None:
