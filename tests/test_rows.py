@@ -75,6 +75,27 @@ def test_gram_on_row_supports_equals_the_dense_gram(transition):
         np.testing.assert_allclose(ours, expected, atol=1e-12)
 
 
+@pytest.mark.parametrize("supported", [False, True])
+def test_grams_add_every_group_into_the_given_blocks(supported):
+    """``grams(groups, weights, K, into=blocks)`` is ``blocks`` plus each group's ``gram``, with
+    and without row supports, path and transition groups mixed."""
+    K, n, ng, m = 5, 6, 1, 5
+    runs = lambda transition: (RowSupport(0, 2, tuple(range(n)), tuple(range(n)) if transition else ()),  # noqa: E731
+                               RowSupport(2, m, tuple(range(n)), tuple(range(n)) if transition else ()))
+    groups = [random_rows(K, n, ng, m, transition, seed=10 + transition)[0] for transition in (False, True)]
+    if supported:
+        groups = [rows.Rows(g.jz, g.jt, g.jn, runs(g.jn is not None)) for g in groups]
+    rng = np.random.default_rng(11)
+    weights = [rng.uniform(0.0, 2.0, size=(K, m)), rng.uniform(0.0, 2.0, size=(K - 1, m))]
+    into = (rng.normal(size=(K, n, n)), rng.normal(size=(K - 1, n, n)), rng.normal(size=(K, n, ng)),
+            rng.normal(size=(ng, ng)))
+    expected = rows.add(into, *(rows.gram(g, w, K) for g, w in zip(groups, weights)))
+    for ours, want in zip(rows.grams(groups, weights, K, into=into), expected):
+        np.testing.assert_allclose(ours, want, atol=1e-12)
+    for ours, want in zip(rows.grams(groups, weights, K), rows.add(*(rows.gram(g, w, K) for g, w in zip(groups, weights)))):
+        np.testing.assert_allclose(ours, want, atol=1e-12)
+
+
 def test_group_rows_refuses_supports_that_do_not_partition_the_rows():
     blocks = types.SimpleNamespace(path_equality_z=np.zeros((3, 4, 5)), path_equality_theta=np.zeros((3, 4, 1)))
     with pytest.raises(ValueError, match="cover its 4 rows"):

@@ -87,7 +87,7 @@ def gram(rows, w, K, into=None):
     if into is None:
         into = (jnp.zeros((K, n, n), w.dtype), jnp.zeros((K - 1, n, n), w.dtype), jnp.zeros((K, n, ng), w.dtype),
                 jnp.zeros((ng, ng), w.dtype))
-    D, L, B, C = into
+    D, L, B, C = (jnp.asarray(b) for b in into)
     C = C + jnp.einsum("kmg,km,kmh->gh", jt, w, jt)
     if rows.supports is not None:
         return _sparse_gram(rows, w, D, L, B) + (C,)
