@@ -78,7 +78,7 @@ def pull(rows, v, K):
 def gram(rows, w, K, into=None):
     """Blocks (D, L, B, C) of Jᵀ diag(w) J for row weights w (R, m); with ``into`` (blocks
     (D, L, B, C) of the same shapes), those plus ``into``, the products added into its blocks
-    (no separate arrays to sum: a pass over the (K, n, n) blocks each).
+    (separate arrays, summed after, cost a pass over the (K, n, n) blocks each).
 
     With ``rows.supports`` the knot blocks are formed run by run on the run's columns alone
     (on iRonCub ≈ 3 % of a dense block's products)."""
