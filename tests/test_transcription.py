@@ -144,6 +144,30 @@ def test_all_scenarios_build_at_published_size():
     assert scenario("take_off").layout.size == 178
 
 
+def test_every_unbounded_variable_enters_the_cost_or_a_constraint():
+    """A free variable without bounds that no function reads makes every Newton matrix singular
+    (ḟ[0] on walk-to-fly, whose cost weighs no ḟ, until session 34: an inertia correction at
+    every iteration). At a random point of each scenario, every such variable has a non-zero
+    Jacobian column or cost curvature."""
+    blocks = jax.jit(stagewise.blocks)
+    for name in SCENARIOS:
+        task = scenario(name, knots=4)
+        nlp = transcription.stagewise_nlp(task)
+        Z, theta = _random_point(task, seed=2)
+        B = blocks(nlp, Z, theta)
+        used = np.abs(np.diagonal(np.asarray(B.cost_zz), axis1=1, axis2=2))
+        for group in ("path_equality", "path_inequality"):
+            used = used + np.sum(np.asarray(getattr(B, group + "_z")) ** 2, axis=1)
+        for group in ("transition_equality", "transition_inequality"):
+            used[:-1] += np.sum(np.asarray(getattr(B, group + "_z")) ** 2, axis=1)
+            used[1:] += np.sum(np.asarray(getattr(B, group + "_znext")) ** 2, axis=1)
+        lower, upper = np.asarray(nlp.z_lower), np.asarray(nlp.z_upper)
+        unbounded = (lower < upper) & ~np.isfinite(lower) & ~np.isfinite(upper)
+        names = [field for field, sl in task.layout.slices().items() for _ in range(sl.stop - sl.start)]
+        unused = sorted({(int(k), names[j]) for k, j in zip(*np.nonzero(unbounded & (used == 0)))})
+        assert not unused, f"{name}: free, unbounded variables that nothing reads (knot, field): {unused}"
+
+
 @pytest.mark.parametrize("kwargs, message", [
     (dict(knots=-3), "knots must be an integer N ≥ 2"),
     (dict(knots=1), "knots must be an integer N ≥ 2"),

@@ -511,6 +511,7 @@ class ReferenceNLP:
         final_tol = float(P["final_orientation_tolerance"])
         box(N, "base_quaternion", np.array(_IDENTITY) - final_tol, np.array(_IDENTITY) + final_tol)
         box(0, "contact_points", 0.0, 0.0, slice(2, None, 3))
+        box(0, "contact_force_rates", 0.0, 0.0)
         if self.task.zero_initial_thrust:
             box(0, "thrust", 0.0, tol)
             box(0, "thrust_rate", -tol, tol)

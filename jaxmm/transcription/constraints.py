@@ -214,6 +214,10 @@ def variable_bounds(task):
     box("contact_forces", 0.0, None, entries=vertical)
     box("contact_points", 0.0, None, entries=vertical)
     box("contact_points", 0.0, 0.0, knots=0, entries=vertical)
+    # f[k+1] integrates ḟ[k+1] (force_integration): ḟ[0] enters no constraint, and only its cost,
+    # minimal at 0, if any. Left free it made the Newton matrix singular on walk-to-fly (no ḟ
+    # weight), so that every iteration needed an inertia correction that damped the whole step.
+    box("contact_force_rates", 0.0, 0.0, knots=0)
     box("thrust", 0.0, p.max_thrust)
     if task.zero_initial_thrust:
         box("thrust", 0.0, tol, knots=0)
