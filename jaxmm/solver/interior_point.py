@@ -87,9 +87,11 @@ class Options:
     tolerance: max constraint violation (the NLP's own units: |c|, distance of g to [l, u]);
     100× tighter than the paper's IPOPT ``constr_viol_tol``; stationarity: scaled dual
     infeasibility and complementarity (IPOPT's E₀ without the violation), the paper's IPOPT
-    ``tol``; max_iterations: Newton iterations; barrier0, barrier_min: first and last barrier
-    parameter μ; barrier_factor, barrier_power: μ ← min(factor μ, μ^power) once the barrier
-    problem is solved to barrier_tolerance_factor × μ; dual_regularisation: δ = 1/ρ of the
+    ``tol``; max_iterations: Newton iterations; barrier0: the first barrier parameter μ;
+    barrier_factor, barrier_power: μ ← min(factor μ, μ^power) once the barrier problem is
+    solved to barrier_tolerance_factor × μ, but not below barrier_min / 10 nor below
+    stationarity / (barrier_tolerance_factor + 1) (IPOPT's floor: a barrier problem solved
+    there meets the stationarity tolerance already); dual_regularisation: δ = 1/ρ of the
     equality rows; line_search_steps: backtracking halvings; max_gradient: scaling target;
     max_rejections: consecutive rejected steps before the restoration phase (violation above
     tolerance) or ``STALLED``; max_filter_resets: how often, per barrier parameter, a step that only the
@@ -672,14 +674,16 @@ def advance(nlp, state, options=Options(), until=None):
         converged = (error0 <= options.stationarity) & (v_now <= options.tolerance)
 
         # Barrier update (monotone, IPOPT): as long as the barrier problem is solved to κ_ε μ.
+        floor = max(options.barrier_min / 10, options.stationarity / (options.barrier_tolerance_factor + 1))
+
         def solved(carry):
             mu, _ = carry
             return (jnp.maximum(jnp.maximum(dual_error, primal_error), complementarity_error(mu))
-                    <= options.barrier_tolerance_factor * mu) & (mu > options.barrier_min)
+                    <= options.barrier_tolerance_factor * mu) & (mu > floor)
 
         def decrease(carry):
             mu, count = carry
-            new = jnp.maximum(options.barrier_min / 10, jnp.minimum(options.barrier_factor * mu, mu**options.barrier_power))
+            new = jnp.maximum(floor, jnp.minimum(options.barrier_factor * mu, mu**options.barrier_power))
             return new, count + 1
 
         mu, updates = jax.lax.while_loop(solved, decrease, (state.mu, jnp.asarray(0)))
