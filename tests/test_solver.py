@@ -100,6 +100,22 @@ def test_bounds_are_kept_and_active_at_the_solution():
     assert np.isclose(np.abs(u).max(), u_max)
 
 
+@pytest.mark.parametrize("stationarity", [1e-4, 1e-9])
+def test_the_barrier_parameter_stops_at_ipopts_floor(stationarity):
+    """μ decreases no further than stationarity / (barrier_tolerance_factor + 1) (IPOPT's floor:
+    a barrier problem solved there meets the stationarity tolerance), and the solve converges."""
+    unbounded = _dense_kkt_solution().reshape(-1)[:-1].reshape(K, 3)
+    options = dataclasses.replace(OPTIONS, stationarity=stationarity)
+    solution = solve(_integrator(u_max=0.5 * np.abs(unbounded[:, 2]).max()), jnp.zeros((K, 3)), jnp.zeros(1),
+                     options=options)
+    assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
+    barrier = np.asarray(solution.history)[: int(solution.iterations), ip.HISTORY_COLUMNS.index("barrier")]
+    floor = stationarity / (options.barrier_tolerance_factor + 1)
+    assert barrier.min() >= floor * (1 - 1e-12)
+    if stationarity == 1e-9:
+        assert barrier.min() < 1e-4 / (options.barrier_tolerance_factor + 1)
+
+
 def test_nonlinear_inequality_matches_the_equivalent_box():
     """u² ≤ c as a path inequality gives the same optimum as the box |u| ≤ √c."""
     cap = 0.01
