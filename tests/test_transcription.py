@@ -196,7 +196,9 @@ def test_unknown_scenario_and_missing_jet_model():
         jaxmm.load_robot(jaxmm.assemble_urdf(jaxmm.robots.ironcub_description()), jet_frames=["nozzle"])
 
 
-@pytest.mark.parametrize("integration", ["backward_euler", "trapezoidal"])
+# The backward-Euler variant differs only in two transition families; it runs under
+# ``pytest -m slow`` (≈ 2 minutes), to keep the default run within its 20-minute budget.
+@pytest.mark.parametrize("integration", [pytest.param("backward_euler", marks=pytest.mark.slow), "trapezoidal"])
 def test_constraint_curvature_matches_jax_hessian(integration):
     """The transcription's own Hessians (path: kinematics linearised + their own curvature, over
     the columns the rows are nonlinear in; transition: over its nonlinear columns + T_total's)
