@@ -173,8 +173,8 @@ def _wachter_biegler():
 def test_the_restoration_phase_leaves_the_infeasible_point_of_wachter_and_biegler():
     """With the restoration phase entered at the first rejected step, the solve converges to
     (1, 0, ½) through restoration iterations (marked in the history); without it, the solve
-    stops ``INFEASIBLE`` at the spurious point the example was built for: x₂ = x₃ = 0, where
-    the linearised constraints and the bounds are incompatible."""
+    stops ``INFEASIBLE``, with IPOPT's inertia correction at the spurious point the example was
+    built for: x₂ = x₃ = 0, where the linearised constraints and the bounds are incompatible."""
     nlp, Z0 = _wachter_biegler()
     options = dataclasses.replace(OPTIONS, max_rejections=1)
     restored = solve(nlp, Z0, jnp.zeros(1), options=options)
@@ -185,10 +185,16 @@ def test_the_restoration_phase_leaves_the_infeasible_point_of_wachter_and_biegle
     assert restoring.any() and np.all(history[restoring, ip.HISTORY_COLUMNS.index("step_length")] > 0)
     assert not restoring[-1]
 
-    stuck = solve(nlp, Z0, jnp.zeros(1), options=dataclasses.replace(options, max_restoration_iterations=0))
-    assert ip.Status(int(stuck.status)) is ip.Status.INFEASIBLE
-    assert np.abs(np.asarray(stuck.Z[:, 1:])).max() <= 1e-6 and float(stuck.violation) > 0.4
-    assert not np.any(np.asarray(stuck.history)[: int(stuck.iterations), ip.HISTORY_COLUMNS.index("restoration")] == 1)
+    # IPOPT's inertia correction (from a third of the last δ_w) keeps δ_w ≈ 1e10 near the spurious
+    # point, so that the steps converge to it; the default's faster decrease lets the iterates
+    # leave it another way (x₁ = −13.8, violation 188), still INFEASIBLE.
+    unrestored = dataclasses.replace(options, max_restoration_iterations=0)
+    for decrease in (1 / 3, ip.Options.regularisation_decrease):
+        stuck = solve(nlp, Z0, jnp.zeros(1), options=dataclasses.replace(unrestored, regularisation_decrease=decrease))
+        assert ip.Status(int(stuck.status)) is ip.Status.INFEASIBLE and float(stuck.violation) > 0.4
+        assert not np.any(np.asarray(stuck.history)[: int(stuck.iterations), ip.HISTORY_COLUMNS.index("restoration")] == 1)
+        if decrease == 1 / 3:
+            assert np.abs(np.asarray(stuck.Z[:, 1:])).max() <= 1e-6
 
 
 @pytest.mark.slow  # three compiled solves (≈ 47 s): keeps the default run under 20 minutes
@@ -350,6 +356,24 @@ def test_history_counts_the_factorisations_of_the_inertia_correction():
     assert history[0, ip.HISTORY_COLUMNS.index("regularisation")] == 1e4
     assert history[0, ip.HISTORY_COLUMNS.index("factorisations")] == pytest.approx(8 / 3, rel=1e-15)
     assert np.all(np.round(3 * history[:, ip.HISTORY_COLUMNS.index("factorisations")]) >= 3)
+
+
+@pytest.mark.parametrize("decrease", [ip.Options.regularisation_decrease, 1 / 3])
+def test_the_inertia_correction_starts_from_the_last_regularisation_times_the_decrease(decrease):
+    """Rosenbrock at (0, 1) (Hessian diag(−398, 200), halved by the cost scaling) needs δ_w > 199.
+    With the last δ_w = 1e4, the first attempt after δ_w = 0 is 1e4 × the decrease, growing ×8:
+    10 × 8² = 640 with the default 1e-3, 1e4 / 3 with IPOPT's κ_w⁻."""
+    free = jnp.full((3, 2), jnp.inf)
+    nlp = _unconstrained(ROSENBROCK, -free, free)
+    options = dataclasses.replace(OPTIONS, regularisation_decrease=decrease)
+    state = ip.start(nlp, jnp.tile(jnp.array([0.0, 1.0]), (3, 1)), jnp.ones(1), options)
+    state = dataclasses.replace(state, regularisation=jnp.asarray(1e4))
+    after = jax.jit(ip.advance, static_argnames="options")(nlp, state, options, 1)
+    delta_w = float(after.history[0, ip.HISTORY_COLUMNS.index("regularisation")])
+    assert delta_w == pytest.approx(640.0 if decrease == 1e-3 else 1e4 / 3, rel=1e-12)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="regularisation_decrease"):
+            ip.Options(regularisation_decrease=bad)
 
 
 def test_a_filter_entry_does_not_reject_the_point_it_was_made_from():
