@@ -245,7 +245,7 @@ def _scenario_arguments(parser):
     parser.add_argument("--knots", type=int, help="N (default: the published one; the horizon is kept)")
     parser.add_argument("--target", type=float, nargs=3, metavar=("X", "Y", "Z"), help="final CoM [m]")
     parser.add_argument("--urdf", help="another URDF of iRonCub (same joint, jet and contact frame names)")
-    parser.add_argument("--max-iterations", type=int, help="solver iteration limit (default 1500)")
+    parser.add_argument("--max-iterations", type=int, help="solver iteration limit (default 3000)")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
     parser.add_argument("--ipopt-slacks", action="store_true",
                         help="regularise the inequality slacks as IPOPT does (δ_s = δ_w; take-off-and-landing "

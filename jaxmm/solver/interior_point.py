@@ -117,7 +117,7 @@ class Options:
 
     tolerance: float = 1e-6
     stationarity: float = 1e-4
-    max_iterations: int = 1500
+    max_iterations: int = 3000
     barrier0: float = 0.1
     barrier_min: float = 1e-11
     barrier_factor: float = 0.2
