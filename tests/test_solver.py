@@ -152,6 +152,40 @@ def test_infeasible_problem_is_reported_with_finite_numbers():
 
 
 
+def test_short_steps_that_no_longer_cut_the_violation_start_the_restoration_phase():
+    """|u| ≤ 0.01 and θ = 0 cannot carry x to 50 in K knots. The Newton steps run into the control
+    bounds and are cut to ≈ 1e-5 (or rejected), so the violation hardly moves. After
+    max_short_steps such iterations the restoration phase starts without a step. Without the
+    rule it starts only after max_rejections rejections in a row (iteration 41 here). Both
+    solves end at the same least-infeasible point."""
+    nlp = _integrator(u_max=0.01)
+    nlp = StagewiseNLP(**{**nlp.__dict__, "z_lower": nlp.z_lower.at[-1, 0].set(50.0),
+                          "z_upper": nlp.z_upper.at[-1, 0].set(50.0), "theta_lower": jnp.zeros(1),
+                          "theta_upper": jnp.zeros(1)})
+    options = ip.Options(max_iterations=300)
+    column = ip.HISTORY_COLUMNS.index
+    solutions = {}
+    for rule in (options.max_short_steps, 0):
+        solution = solve(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options=dataclasses.replace(options, max_short_steps=rule))
+        assert ip.Status(int(solution.status)) is ip.Status.INFEASIBLE
+        history = np.asarray(solution.history)[: int(solution.iterations)]
+        solutions[rule] = solution, int(np.argmax(history[:, column("restoration")] == 1)), history
+    on, first, history = solutions[options.max_short_steps]
+    off, first_off, _ = solutions[0]
+    assert first == options.max_short_steps + 1 < first_off
+    assert np.all(history[:first, column("step_length")] < options.short_step)
+    assert history[first - 1, column("step_length")] == 0.0  # the iteration that gave up takes no step
+    assert int(on.iterations) < int(off.iterations)
+    assert float(on.violation) == pytest.approx(float(off.violation), rel=1e-9) and float(on.violation) > 1.0
+
+
+def test_bad_short_step_options_are_refused_by_name():
+    with pytest.raises(ValueError, match="short_step"):
+        ip.Options(short_step=0.0)
+    with pytest.raises(ValueError, match="max_short_steps"):
+        ip.Options(max_short_steps=-1)
+
+
 def _wachter_biegler():
     """Wächter & Biegler's example (Math. Program. 88, 2000), one copy per knot: min x₁ s.t.
     x₁² − x₂ − 1 = 0, x₁ − x₃ − ½ = 0, x₂, x₃ ≥ 0; the solution is (1, 0, ½). From (−2, 1, 1)

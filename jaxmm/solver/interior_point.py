@@ -96,7 +96,11 @@ class Options:
     one needed times this (IPOPT's κ_w⁻ is 1/3), growing ×8 from there until the Newton matrix
     factors; line_search_steps: backtracking halvings; max_gradient: scaling target;
     max_rejections: consecutive rejected steps before the restoration phase (violation above
-    tolerance) or ``STALLED``; max_filter_resets: how often, per barrier parameter, a step that only the
+    tolerance) or ``STALLED``; max_short_steps, short_step: the restoration phase also starts
+    after max_short_steps iterations in a row whose steps (rejected ones included) were shorter
+    than short_step and that together cut the violation by less than 10 % (0 turns this
+    off): a locally infeasible problem's Newton steps run into the bounds and are cut to
+    ≈ 1e-4, which the line search accepts for 1000 iterations or more; max_filter_resets: how often, per barrier parameter, a step that only the
     filter rejected empties the filter (IPOPT's filter reset heuristic); max_soft_steps: how many
     consecutive iterations may take a soft-restoration step (IPOPT's: when the line search
     rejects every trial, the step to the fraction-to-boundary length is taken if it cuts the
@@ -128,6 +132,8 @@ class Options:
     line_search_steps: int = 30
     max_gradient: float = 100.0
     max_rejections: int = 15
+    max_short_steps: int = 15
+    short_step: float = 1e-3
     max_filter_resets: int = 5
     max_soft_steps: int = 10
     bound_push: float = 1e-2
@@ -141,6 +147,10 @@ class Options:
             raise ValueError(f"Options.slack_start must be one of {SLACK_STARTS}, got {self.slack_start!r}")
         if not 0 < self.regularisation_decrease <= 1:
             raise ValueError(f"Options.regularisation_decrease must be in (0, 1], got {self.regularisation_decrease!r}")
+        if not 0 < self.short_step <= 1:
+            raise ValueError(f"Options.short_step must be in (0, 1], got {self.short_step!r}")
+        if self.max_short_steps < 0:
+            raise ValueError(f"Options.max_short_steps must be ≥ 0 (0 turns the rule off), got {self.max_short_steps!r}")
 
 
 def iteration_options(options):
@@ -342,6 +352,8 @@ class State:
     filter_resets: jax.Array  # filter resets since the barrier parameter last changed
     soft_steps: jax.Array  # consecutive soft-restoration steps (0: the line search accepted the last step)
     rejections: jax.Array
+    short_steps: jax.Array  # consecutive iterations with steps below short_step and < 10 % less violation
+    short_violation: jax.Array  # the violation where those iterations began
     iterations: jax.Array
     barrier_updates: jax.Array
     status: jax.Array
@@ -452,7 +464,7 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         filter_theta=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(1e4 * envelope),
         filter_phi=jnp.full(FILTER_SIZE, jnp.inf, dtype).at[0].set(-jnp.inf),
         filter_count=jnp.asarray(1), filter_resets=jnp.asarray(0), soft_steps=jnp.asarray(0),
-        rejections=jnp.asarray(0), iterations=jnp.asarray(0),
+        rejections=jnp.asarray(0), short_steps=jnp.asarray(0), short_violation=v0, iterations=jnp.asarray(0),
         barrier_updates=jnp.asarray(0), status=jnp.asarray(int(Status.RUNNING)), violation=v0,
         stationarity=jnp.asarray(jnp.inf, dtype),
         history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
@@ -638,7 +650,8 @@ def advance(nlp, state, options=Options(), until=None):
             y=jax.tree.map(lambda v: jnp.where(done, 0.0, v), state.y),
             restoring=~done, restoration_iterations=count, status=status, violation=v_new,
             # The regularisation escalated by the rejected steps before the phase is forgotten.
-            soft_steps=jnp.asarray(0), rejections=jnp.asarray(0), forced=jnp.zeros_like(state.forced),
+            soft_steps=jnp.asarray(0), rejections=jnp.asarray(0), short_steps=jnp.asarray(0),
+            forced=jnp.zeros_like(state.forced),
             regularisation=jnp.zeros_like(state.regularisation),
             history=state.history.at[state.iterations].set(record), iterations=state.iterations + 1,
         )
@@ -677,6 +690,9 @@ def advance(nlp, state, options=Options(), until=None):
         v_now = state.violation
         error0 = jnp.maximum(dual_error, complementarity_error(0.0))
         converged = (error0 <= options.stationarity) & (v_now <= options.tolerance)
+        # Short steps that no longer cut the violation: restoration from here, without a step.
+        crawling = ((options.max_short_steps > 0) & (options.max_restoration_iterations > 0)
+                    & (state.short_steps >= options.max_short_steps) & (v_now > options.tolerance) & ~converged)
 
         # Barrier update (monotone, IPOPT): as long as the barrier problem is solved to κ_ε μ.
         floor = max(options.barrier_min / 10, options.stationarity / (options.barrier_tolerance_factor + 1))
@@ -898,7 +914,7 @@ def advance(nlp, state, options=Options(), until=None):
         alpha = jnp.where(soc_ok, alpha_soc, alpha)
         alpha_z = jnp.where(soc_ok, alpha_z_soc, alpha_z)
         f_type = jnp.where(soc_ok, soc_f, f_type)
-        accepted = accepted & factored
+        accepted = accepted & factored & ~crawling
         # Soft restoration (IPOPT): every trial turned down, the Newton step to its
         # fraction-to-boundary length, in all variables at once, is taken if it reduces the
         # barrier problem's primal–dual error. Near a solution with huge multipliers (walk-to-fly),
@@ -914,7 +930,7 @@ def advance(nlp, state, options=Options(), until=None):
             now = primal_dual_error(dual[:2] + slack_dual, c, complementarity(dl, du, zl, zu, mu))
             return primal_dual_error_at(*trial, mu) <= 0.9999 * now
 
-        soft = jax.lax.cond(factored & ~accepted & (soft_steps < options.max_soft_steps), soft_trial,
+        soft = jax.lax.cond(factored & ~accepted & ~crawling & (soft_steps < options.max_soft_steps), soft_trial,
                             lambda _: jnp.asarray(False), None)
         step = jnp.where(accepted, alpha, jnp.where(soft, alpha_soft, 0.0))
         step_z = jnp.where(accepted, alpha_z, jnp.where(soft, alpha_soft, 0.0))
@@ -938,7 +954,7 @@ def advance(nlp, state, options=Options(), until=None):
         # No step accepted, but one the filter alone turned down (the iterate has wandered into a
         # pocket its own history fences in): empty the filter and retry the step (IPOPT's filter
         # reset heuristic).
-        unblock = factored & ~accepted & ~soft & blocked & (filter_resets < options.max_filter_resets)
+        unblock = factored & ~accepted & ~soft & ~crawling & blocked & (filter_resets < options.max_filter_resets)
         filter_theta = jnp.where(unblock, jnp.full_like(filter_theta, jnp.inf).at[0].set(state.theta_max), filter_theta)
         filter_phi = jnp.where(unblock, jnp.full_like(filter_phi, jnp.inf).at[0].set(-jnp.inf), filter_phi)
         filter_count = jnp.where(unblock, 1, filter_count)
@@ -946,14 +962,17 @@ def advance(nlp, state, options=Options(), until=None):
         moved = accepted | soft
         # Steps rejected max_rejections times in a row, each retried with more regularisation,
         # with the violation above tolerance: IPOPT's restoration phase, from here.
-        restore = (~moved & ~unblock & (state.rejections + 1 >= options.max_rejections)
-                   & (v_now > options.tolerance) & (options.max_restoration_iterations > 0))
+        restore = crawling | (~moved & ~unblock & (state.rejections + 1 >= options.max_rejections)
+                              & (v_now > options.tolerance) & (options.max_restoration_iterations > 0))
         slot = filter_count % FILTER_SIZE
         filter_theta = jnp.where(restore, filter_theta.at[slot].set((1 - 1e-5) * theta0_), filter_theta)
         filter_phi = jnp.where(restore, filter_phi.at[slot].set(phi0 - 1e-8 * theta0_), filter_phi)
         filter_count = filter_count + restore.astype(filter_count.dtype)
         rejections = jnp.where(moved | unblock | restore, 0, state.rejections + 1)
         v_new, _ = violation(nlp, P_new[0], P_new[1])
+        short = (step < options.short_step) & ~restore
+        short_violation = jnp.where(short & (state.short_steps == 0), v_now, state.short_violation)
+        short_steps = jnp.where(short & (v_new > 0.9 * short_violation), state.short_steps + 1, 0)
         record = jnp.stack([
             stagewise.residuals(nlp, P_new[0], P_new[1]).cost, v_new, error0, mu, step, delta_w, solves, 0.0,
             factorisations,
@@ -970,7 +989,8 @@ def advance(nlp, state, options=Options(), until=None):
             forced=jnp.where(moved | unblock | restore, 0.0, jnp.maximum(delta_w * 100.0, 1e-4)),
             filter_theta=filter_theta, filter_phi=filter_phi, filter_count=filter_count, filter_resets=filter_resets,
             soft_steps=jnp.where(soft, soft_steps + 1, jnp.where(accepted, 0, soft_steps)),
-            rejections=rejections, iterations=state.iterations + 1,
+            rejections=rejections, short_steps=short_steps, short_violation=short_violation,
+            iterations=state.iterations + 1,
             barrier_updates=state.barrier_updates + updates, status=status, violation=v_new,
             stationarity=error0, history=state.history.at[state.iterations].set(record),
             scaling=state.scaling, theta_max=state.theta_max, theta_min=state.theta_min,
