@@ -100,8 +100,9 @@ class Options:
     after max_short_steps iterations in a row whose steps (rejected ones included) were shorter
     than short_step and that together cut the violation by less than 10 % (0 turns this
     off): a locally infeasible problem's Newton steps run into the bounds and are cut to
-    ≈ 1e-4, which the line search accepts for 1000 iterations or more; max_filter_resets: how often, per barrier parameter, a step that only the
-    filter rejected empties the filter (IPOPT's filter reset heuristic); max_soft_steps: how many
+    ≈ 1e-4, which the line search accepts for 1000 iterations or more; max_filter_resets: how
+    often, per barrier parameter, a step that only the filter rejected empties the filter
+    (IPOPT's filter reset heuristic); max_soft_steps: how many
     consecutive iterations may take a soft-restoration step (IPOPT's: when the line search
     rejects every trial, the step to the fraction-to-boundary length is taken if it cuts the
     primal–dual error of the barrier problem by 0.9999; 0 turns it off);
