@@ -140,16 +140,21 @@ def test_vmap_over_parameters_equals_a_loop():
         assert np.abs(np.concatenate([np.asarray(single.Z).reshape(-1), single.theta]) - expected).max() <= 1e-7
 
 
+def _out_of_reach(u_max):
+    """The integrator with |u| ≤ u_max, no drift (θ = 0) and the last position pinned at 50: for
+    small u_max, infeasible."""
+    nlp = _integrator(u_max=u_max)
+    return StagewiseNLP(**{**nlp.__dict__, "z_lower": nlp.z_lower.at[-1, 0].set(50.0), "z_upper": nlp.z_upper.at[-1, 0].set(50.0),
+                           "theta_lower": jnp.zeros(1), "theta_upper": jnp.zeros(1)})
+
+
 def test_infeasible_problem_is_reported_with_finite_numbers():
     """x⁺ = x + 0.1 v + …, u fixed at 0 and the last position pinned far away: infeasible."""
-    nlp = _integrator(u_max=0.0)
-    nlp = StagewiseNLP(**{**nlp.__dict__, "z_lower": nlp.z_lower.at[-1, 0].set(50.0), "z_upper": nlp.z_upper.at[-1, 0].set(50.0),
-                          "theta_lower": jnp.zeros(1), "theta_upper": jnp.zeros(1)})
+    nlp = _out_of_reach(0.0)
     solution = solve(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options=ip.Options(max_iterations=300))
     assert ip.Status(int(solution.status)) is ip.Status.INFEASIBLE
     assert np.all(np.isfinite(np.asarray(solution.Z))) and np.isfinite(float(solution.violation))
     assert float(solution.violation) > 1.0
-
 
 
 def test_short_steps_that_no_longer_cut_the_violation_start_the_restoration_phase():
@@ -158,10 +163,7 @@ def test_short_steps_that_no_longer_cut_the_violation_start_the_restoration_phas
     max_short_steps such iterations the restoration phase starts without a step. Without the
     rule it starts only after max_rejections rejections in a row (iteration 41 here). Both
     solves end at the same least-infeasible point."""
-    nlp = _integrator(u_max=0.01)
-    nlp = StagewiseNLP(**{**nlp.__dict__, "z_lower": nlp.z_lower.at[-1, 0].set(50.0),
-                          "z_upper": nlp.z_upper.at[-1, 0].set(50.0), "theta_lower": jnp.zeros(1),
-                          "theta_upper": jnp.zeros(1)})
+    nlp = _out_of_reach(0.01)
     options = ip.Options(max_iterations=300)
     column = ip.HISTORY_COLUMNS.index
     solutions = {}
