@@ -91,6 +91,8 @@ def structure(task):
 
 
 def single_device(args):
+    """Print the factorisation's, the kernels' and the budget's tables; return the
+    factorisation's median time [s]."""
     import jax
     import jax.numpy as jnp
     from jax.scipy.linalg import solve_triangular
@@ -237,8 +239,10 @@ def compare_devices(args, t_factor):
                                                " --xla_force_host_platform_device_count=2").strip())
     command = [sys.executable, __file__, "--two-device-part", "--scenario", args.scenario,
                "--repeats", str(args.repeats)] + ([] if args.knots is None else ["--knots", str(args.knots)])
-    output = subprocess.run(command, env=environment, check=True, capture_output=True, text=True).stdout
-    two = json.loads(output.strip().splitlines()[-1])
+    run = subprocess.run(command, env=environment, capture_output=True, text=True)
+    if run.returncode != 0:
+        sys.exit(f"the two-device part failed (exit {run.returncode}):\n{run.stderr[-4000:]}")
+    two = json.loads(run.stdout.strip().splitlines()[-1])
     print("\nThe knot-parallel work in one program on one CPU device (this process), then split over two")
     print("(jax.shard_map, a process with two host devices), same run:\n")
     print(render(("work", "one device", "two devices", "speed-up"),
