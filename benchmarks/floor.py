@@ -17,9 +17,13 @@ this machine, and what a second CPU device adds to one solve.
    across the two (``jax.shard_map``). XLA's CPU runtime runs the independent loops of one
    device's program one after the other (measured: two factorisation chains take twice one),
    so a single solve uses one core unless its program is split over devices.
+5. ``--knot-size n --coupled s``: steps 1–3 for K blocks of n variables with s coupled columns
+   instead of the task's own (K and the border stay the task's): what a transcription with
+   fewer variables per knot would leave for the linear algebra, measured rather than
+   extrapolated from the FLOP count (``--devices`` still times the task's own structure).
 
 Usage: python benchmarks/floor.py [--scenario take_off] [--knots N] [--iterations 243]
-       [--budget 10] [--repeats 15] [--devices]
+       [--budget 10] [--repeats 15] [--devices] [--knot-size n --coupled s]
 """
 
 import os
@@ -76,8 +80,9 @@ def median_time(fn, *args, repeats):
     return first, float(np.median(times))
 
 
-def structure(task):
-    """(K, n, coupled columns, m) of a task's condensed Newton matrix."""
+def structure(task, knot_size=None, coupled=None):
+    """(K, n, coupled columns, m) of a task's condensed Newton matrix, or with n = knot_size and
+    its last ``coupled`` columns coupled instead of the task's (K and m the task's)."""
     from jaxmm.solver import rows
     from jaxmm.transcription import nlp as transcription
     from jaxmm.transcription import stagewise
@@ -85,10 +90,12 @@ def structure(task):
 
     nlp = transcription.stagewise_nlp(task)
     Z, theta = transcription.to_variables(task, initial_guess(task))
-    coupled = rows.coupled_columns(stagewise.row_supports(nlp))
+    if knot_size is not None:
+        return Z.shape[0], knot_size, np.arange(knot_size - coupled, knot_size), theta.shape[0]
+    columns = rows.coupled_columns(stagewise.row_supports(nlp))
     n = Z.shape[1]
-    coupled = np.arange(n) if coupled is None else np.asarray(coupled, int)
-    return Z.shape[0], n, coupled, theta.shape[0]
+    columns = np.arange(n) if columns is None else np.asarray(columns, int)
+    return Z.shape[0], n, columns, theta.shape[0]
 
 
 def single_device(args):
@@ -106,7 +113,7 @@ def single_device(args):
     for line in machine_lines(("jax", "jaxlib", "numpy")):
         print(line)
     task = tasks.scenario(args.scenario, knots=args.knots, keep_horizon=args.knots is not None)
-    K, n, coupled, m = structure(task)
+    K, n, coupled, m = structure(task, args.knot_size, args.coupled)
     s = coupled.size
     D, L, B, C = (jnp.asarray(a) for a in random_system(K, n, coupled, m))
     factor = jax.jit(lambda D, L, B, C: linalg.factor(D, L, B, C, coupled=tuple(int(i) for i in coupled)))
@@ -120,8 +127,9 @@ def single_device(args):
     Ax, Ay = linalg.matvec(D, L, B, C, *solve(chol, r, t))
     residual = max(float(jnp.max(jnp.abs(Ax - r))), float(jnp.max(jnp.abs(Ay - t), initial=0.0)))
     flops = factorisation_flops(K, n, s, m)
+    hypothetical = "" if args.knot_size is None else " (--knot-size and --coupled: not the task's own)"
     print(f"\n{args.scenario}, N = {K - 1}: Newton matrix of {K} blocks of {n}, {s} coupled columns, "
-          f"border {m}; solve residual {residual:.1e}\n")
+          f"border {m}{hypothetical}; solve residual {residual:.1e}\n")
     print(render(("operation", "compile + first call", "median", "GFLOP", "GFLOP/s"), [
         ("factorisation (linalg.factor)", format_time(compile_f), format_time(t_factor), f"{flops / 1e9:.3f}",
          f"{flops / t_factor / 1e9:.1f}"),
@@ -260,10 +268,16 @@ def main():
     parser.add_argument("--budget", type=float, default=10.0, help="target solve time [s]")
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--devices", action="store_true", help="also time one program split over two CPU devices")
+    parser.add_argument("--knot-size", type=int, default=None, help="n variables per knot instead of the task's")
+    parser.add_argument("--coupled", type=int, default=None, help="with --knot-size: s coupled columns (≤ n)")
     parser.add_argument("--two-device-part", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.iterations < 1 or args.budget <= 0 or args.repeats < 1:
         parser.error("--iterations and --repeats must be ≥ 1 and --budget > 0")
+    if (args.knot_size is None) != (args.coupled is None):
+        parser.error("--knot-size and --coupled go together")
+    if args.knot_size is not None and not 1 <= args.coupled <= args.knot_size:
+        parser.error(f"--coupled must be in 1..--knot-size ({args.knot_size}), got {args.coupled}")
     if args.two_device_part:
         two_devices(args)
         return
