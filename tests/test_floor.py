@@ -57,15 +57,3 @@ def test_flop_count_adds_the_chains_kernels():
     assert floor.factorisation_flops(3, 2, 1) == cholesky + forward + backward
     assert floor.factorisation_flops(3, 2, 1, m=1) > floor.factorisation_flops(3, 2, 1)
 
-
-def test_a_hypothetical_knot_keeps_the_tasks_knots_and_border():
-    """``--knot-size n --coupled s``: the task's K and border with n variables per knot, the last s
-    coupled; without them, the task's own structure (take-off N = 4: 5 knots of 178 plus T_total)."""
-    from jaxmm import tasks
-
-    task = tasks.scenario("take-off", knots=4, keep_horizon=True)
-    K, n, coupled, m = floor.structure(task)
-    assert (K, n, m) == (5, 178, 1) and 0 < coupled.size < n
-    K2, n2, coupled2, m2 = floor.structure(task, 115, 95)
-    assert (K2, n2, m2) == (5, 115, 1)
-    np.testing.assert_array_equal(coupled2, np.arange(20, 115))
