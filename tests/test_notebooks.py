@@ -47,8 +47,9 @@ def _run(name, directory):
 # 29's CI-like run, which took 21.7 minutes with it): like the other robot-scale batch and
 # tuning tests, they run by hand with ``pytest -m slow``. So does the IPOPT notebook since
 # session 39 (85 s of building the CasADi NLP and compiling, in a CI-like run of 20.05 minutes
-# with it), whose comparison ``test_solve_task``'s IPOPT cross-checks make on converged optima.
-SLOW = {"04_multistart", "05_weight_tuning", "06_ipopt_reference"}
+# with it), whose comparison ``test_solve_task``'s IPOPT cross-checks make on converged optima,
+# and the all-scenarios notebook (53 s; at CI sizes the take-off that 02 solves).
+SLOW = {"03_all_scenarios", "04_multistart", "05_weight_tuning", "06_ipopt_reference"}
 
 
 def _notebook_test(name):

@@ -430,6 +430,7 @@ def test_a_filter_entry_does_not_reject_the_point_it_was_made_from():
 advance = jax.jit(ip.advance, static_argnames="options")
 
 
+@pytest.mark.slow  # ≈ 55 s of compiling: keeps the default run under 20 minutes (session 39)
 def test_a_filter_that_rejects_every_trial_leaves_the_soft_restoration_step():
     """When the line search turns every trial down (here a filter entry at zero infeasibility,
     and no filter resets), IPOPT's soft restoration takes the Newton step to its
