@@ -88,11 +88,10 @@ def structure(task, knot_size=None, coupled=None):
     from jaxmm.transcription import stagewise
     from jaxmm.tasks import initial_guess
 
-    nlp = transcription.stagewise_nlp(task)
     Z, theta = transcription.to_variables(task, initial_guess(task))
     if knot_size is not None:
         return Z.shape[0], knot_size, np.arange(knot_size - coupled, knot_size), theta.shape[0]
-    columns = rows.coupled_columns(stagewise.row_supports(nlp))
+    columns = rows.coupled_columns(stagewise.row_supports(transcription.stagewise_nlp(task)))
     n = Z.shape[1]
     columns = np.arange(n) if columns is None else np.asarray(columns, int)
     return Z.shape[0], n, columns, theta.shape[0]

@@ -56,4 +56,3 @@ def test_flop_count_adds_the_chains_kernels():
     backward = 2 * 2 * 1 + 2 * 1 * 1 * 2  # triangular solve n² s, update 2 s² n
     assert floor.factorisation_flops(3, 2, 1) == cholesky + forward + backward
     assert floor.factorisation_flops(3, 2, 1, m=1) > floor.factorisation_flops(3, 2, 1)
-
