@@ -94,10 +94,11 @@ def test_matvec_matches_dense():
 
 
 @pytest.mark.parametrize("K, n, m, coupled", [(7, 6, 2, (4, 1, 5)), (8, 6, 1, (4, 1, 5)), (3, 5, 1, ()), (4, 4, 1, (0, 1, 2, 3)),
-                                              (2, 3, 1, (2,)), (1, 3, 1, (2,))])
+                                              (2, 3, 1, (2,)), (1, 3, 1, (2,)), (7, 6, 2, (3, 4, 5)), (8, 6, 1, (5,))])
 def test_coupling_in_some_columns(K, n, m, coupled):
     """Coupling blocks non-zero only in the declared columns: the same solution as a dense solve,
-    and a wrong declaration (a non-zero column left out) is not silently the same."""
+    and a wrong declaration (a non-zero column left out) is not silently the same; the columns
+    anywhere (the blocks reordered) or already last (nothing reordered)."""
     A, D, L, B, C = _random_system(K, n, m, seed=K + n)
     outside = np.setdiff1d(np.arange(n), coupled)
     L = L.copy()
@@ -126,7 +127,7 @@ def test_coupled_columns_out_of_range_are_refused():
         linalg.factor(D, L, B, C, coupled=(1, 4))
 
 
-@pytest.mark.parametrize("coupled", [None, (4, 1, 5)])
+@pytest.mark.parametrize("coupled", [None, (4, 1, 5), (3, 4, 5)])
 def test_diagonal_shifts_added_as_factored(coupled):
     """factor(D, …, shift=s, corner_shift=c) is factor(D + diag s, …, C + diag c) to the last bit,
     with or without the coupled-columns reordering, and a shift that makes a block indefinite is

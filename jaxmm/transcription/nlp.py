@@ -179,7 +179,7 @@ def _path_curvature_columns(layout):
     fields = ("com", "base_position", "base_quaternion", "joint_positions", "base_linear_velocity",
               "base_angular_velocity", "joint_velocities", "contact_forces", "contact_points", "thrust",
               "thrust_rate", "throttle")
-    return np.concatenate([_columns(layout, f) for f in fields])
+    return np.sort(np.concatenate([_columns(layout, f) for f in fields]))  # increasing, as _embedded takes them
 
 
 def _transition_curvature_columns(task):
@@ -194,7 +194,7 @@ def _transition_curvature_columns(task):
         _columns(layout, "base_quaternion"), _columns(layout, "contact_forces", slice(2, None, 3)), planar,
         _columns(layout, "base_angular_velocity", offset=nz), planar + nz,
     ])
-    return tuple(int(c) for c in columns)
+    return tuple(int(c) for c in np.sort(columns))
 
 
 def _hessian_over(fn, w0, columns):
