@@ -1,0 +1,116 @@
+"""How much a solve's iteration count is owed to rounding: one scenario solved from its
+published guess and from copies of it perturbed by a relative ``--scale`` (default 1e-12, far
+below every tolerance), all by the same compiled program.
+
+A perturbation that small changes nothing a user could see in the task, but the iterates part
+ways after a few iterations (the line search's and the inertia correction's decisions are
+thresholds), and the solve can end elsewhere after more or fewer iterations. A change to the
+code that only reorders floating-point sums (a variable layout, a compiler flag) has the same
+effect, so one solve's iteration count cannot tell such a change from a better or worse method:
+this spread is the yardstick (session 41: take-off N = 70 took 243, 252 and 315 iterations
+with XLA's fusion emitters on, off, and with the knot's variables in another order).
+
+Printed: per copy (0: the published guess itself), the iterations, the factorisations per
+iteration, the solve time, the objective, the status and ``analysis.validate``; then the
+iterations' and solve times' median, minimum and maximum. Compile time apart. ``--option
+name=value`` (repeatable) solves with ``optimise.DEFAULT_OPTIONS`` so changed (a Python literal:
+``--option regularisation_decrease=0.01``): compare a variant with the default by their spreads.
+
+Usage: python benchmarks/rounding.py [--scenario take_off] [--knots N] [--copies 6]
+       [--scale 1e-12] [--seed 0] [--option name=value ...]
+"""
+
+import os
+
+os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
+
+import argparse  # noqa: E402
+import ast  # noqa: E402
+import dataclasses  # noqa: E402
+import statistics  # noqa: E402
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jaxmm  # noqa: E402  (enables float64)
+from machine import format_time, log, machine_lines, render, timed  # noqa: E402
+from jaxmm import analysis, optimise, tasks  # noqa: E402
+from jaxmm.solver import interior_point as ip  # noqa: E402
+
+
+def perturbed(guess, scale, seed):
+    """``guess`` (a ``Trajectory``) with every knot entry x replaced by x (1 + scale · n), n a
+    standard normal draw (``seed``); entries that are 0 stay 0, and T_total is kept."""
+    rng = np.random.default_rng(seed)
+    knots = jax.tree.map(lambda x: x * (1.0 + scale * rng.standard_normal(np.shape(x))), guess.knots)
+    return type(guess)(knots=knots, total_time=guess.total_time)
+
+
+def solver_options(assignments):
+    """``optimise.DEFAULT_OPTIONS`` with the ``name=value`` strings applied (values: Python
+    literals); a ValueError names an unknown option or a value that is not a literal."""
+    changes = {}
+    fields = {f.name for f in dataclasses.fields(ip.Options)}
+    for text in assignments:
+        name, sep, value = text.partition("=")
+        if not sep or name.strip() not in fields:
+            raise ValueError(f"--option {text!r}: expected name=value with name one of {', '.join(sorted(fields))}")
+        try:
+            changes[name.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            raise ValueError(f"--option {text!r}: {value.strip()!r} is not a Python literal") from None
+    return dataclasses.replace(optimise.DEFAULT_OPTIONS, **changes)
+
+
+def factorisations(solution):
+    """The inertia correction's mean work per iteration, in whole factorisations."""
+    history = np.asarray(solution.history)[: int(solution.iterations)]
+    return float(np.nanmean(history[:, ip.HISTORY_COLUMNS.index("factorisations")])) if len(history) else 0.0
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenario", default="take_off", choices=tuple(tasks.SCENARIOS))
+    parser.add_argument("--knots", type=int, default=None, help="N (default: the published one)")
+    parser.add_argument("--copies", type=int, default=6, help="perturbed copies of the guess, beside the guess itself")
+    parser.add_argument("--scale", type=float, default=1e-12, help="relative size of the perturbation")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the first copy (copy i: seed + i − 1)")
+    parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                        help="a solver option changed from the default (repeatable)")
+    args = parser.parse_args()
+    if args.copies < 0 or not args.scale > 0:
+        parser.error("--copies must be ≥ 0 and --scale > 0")
+    try:
+        options = solver_options(args.option)
+    except (ValueError, TypeError) as error:
+        parser.error(str(error))
+    print("\n".join(machine_lines(["jax", "jaxlib", "numpy"])))
+    task = tasks.scenario(args.scenario, knots=args.knots)
+    guess = tasks.initial_guess(task)
+    log(f"{args.scenario} N = {task.n_intervals}: compiling...")
+    run, compile_time = timed(lambda: optimise.compile_solve(task, guess, options))
+    changed = ", ".join(args.option) or "the default options"
+    print(f"\n{args.scenario}, N = {task.n_intervals}, {changed}: compile {format_time(compile_time)}; "
+          f"copies perturbed by a relative {args.scale:g} (seeds {args.seed}..{args.seed + args.copies - 1})\n")
+    rows, iterations, times = [], [], []
+    for copy in range(args.copies + 1):
+        start = guess if copy == 0 else perturbed(guess, args.scale, args.seed + copy - 1)
+        result, seconds = timed(lambda: jax.block_until_ready(run(start)))
+        report = analysis.validate(task, result.trajectory)
+        n = int(result.solution.iterations)
+        iterations.append(n)
+        times.append(seconds)
+        rows.append((copy, n, f"{factorisations(result.solution):.2f}", format_time(seconds),
+                     f"{float(result.solution.objective):.7g}", result.status.name.lower(),
+                     "ok" if report.ok else f"FAILED ({', '.join(report.failed)})"))
+        log(f"copy {copy}: {n} iterations, {format_time(seconds)}, {result.status.name.lower()}")
+    print(render(("copy", "iterations", "factorisations / it.", "solve", "objective", "status", "validate"), rows))
+    print()
+    print(render(("", "median", "min", "max"), [
+        ("iterations", statistics.median(iterations), min(iterations), max(iterations)),
+        ("solve", format_time(statistics.median(times)), format_time(min(times)), format_time(max(times))),
+    ]))
+
+
+if __name__ == "__main__":
+    main()

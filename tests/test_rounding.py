@@ -1,0 +1,54 @@
+"""``benchmarks/rounding.py``'s perturbed guesses: the guess's structure, every entry moved by a
+relative amount of the order of the scale (zeros and T_total kept), the same for the same seed."""
+
+import importlib.util
+import pathlib
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+import jaxmm  # noqa: F401  (float64)
+from jaxmm import tasks
+
+BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCHMARKS))  # rounding.py's neighbour machine.py
+spec = importlib.util.spec_from_file_location("rounding", BENCHMARKS / "rounding.py")
+rounding = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(rounding)
+
+
+def test_perturbed_guess_is_a_relative_perturbation_of_the_given_scale():
+    task = tasks.scenario("take_off", knots=6)
+    guess = tasks.initial_guess(task)
+    copy = rounding.perturbed(guess, 1e-12, seed=3)
+    assert jax.tree.structure(copy) == jax.tree.structure(guess)
+    assert float(copy.total_time) == float(guess.total_time)
+    moved = 0
+    for a, b in zip(jax.tree.leaves(guess.knots), jax.tree.leaves(copy.knots)):
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape and a.dtype == b.dtype
+        assert np.all(b[a == 0] == 0)
+        relative = np.abs(b - a)[a != 0] / np.abs(a[a != 0])
+        assert np.all(relative < 1e-11)  # 10 standard deviations
+        moved += int(np.sum(relative > 0))
+    assert moved > 0.9 * sum(int(np.count_nonzero(x)) for x in jax.tree.leaves(guess.knots))
+    again = rounding.perturbed(guess, 1e-12, seed=3)
+    other = rounding.perturbed(guess, 1e-12, seed=4)
+    assert all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(copy), jax.tree.leaves(again)))
+    assert not all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(copy), jax.tree.leaves(other)))
+
+
+
+def test_solver_options_from_the_command_line():
+    options = rounding.solver_options(["regularisation_decrease=0.01", " max_iterations = 50"])
+    assert options.regularisation_decrease == 0.01 and options.max_iterations == 50
+    assert rounding.solver_options([]) == rounding.optimise.DEFAULT_OPTIONS
+
+
+@pytest.mark.parametrize("assignment, message", [("no_such_option=1", "no_such_option"), ("max_iterations", "name=value"),
+                                                 ("barrier0=fast", "not a Python literal")])
+def test_bad_solver_options_are_named(assignment, message):
+    with pytest.raises(ValueError, match=message):
+        rounding.solver_options([assignment])
