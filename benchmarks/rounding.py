@@ -34,6 +34,7 @@ import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
 from machine import format_time, log, machine_lines, render, timed  # noqa: E402
+from solve_scenarios import per_iteration  # noqa: E402
 from jaxmm import analysis, optimise, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 
@@ -60,12 +61,6 @@ def solver_options(assignments):
         except (ValueError, SyntaxError):
             raise ValueError(f"--option {text!r}: {value.strip()!r} is not a Python literal") from None
     return dataclasses.replace(optimise.DEFAULT_OPTIONS, **changes)
-
-
-def factorisations(solution):
-    """The inertia correction's mean work per iteration, in whole factorisations."""
-    history = np.asarray(solution.history)[: int(solution.iterations)]
-    return float(np.nanmean(history[:, ip.HISTORY_COLUMNS.index("factorisations")])) if len(history) else 0.0
 
 
 def main():
@@ -100,7 +95,7 @@ def main():
         n = int(result.solution.iterations)
         iterations.append(n)
         times.append(seconds)
-        rows.append((copy, n, f"{factorisations(result.solution):.2f}", format_time(seconds),
+        rows.append((copy, n, f"{per_iteration(result.solution, 'factorisations'):.2f}", format_time(seconds),
                      f"{float(result.solution.objective):.7g}", result.status.name.lower(),
                      "ok" if report.ok else f"FAILED ({', '.join(report.failed)})"))
         log(f"copy {copy}: {n} iterations, {format_time(seconds)}, {result.status.name.lower()}")

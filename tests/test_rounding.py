@@ -40,7 +40,6 @@ def test_perturbed_guess_is_a_relative_perturbation_of_the_given_scale():
     assert not all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(copy), jax.tree.leaves(other)))
 
 
-
 def test_solver_options_from_the_command_line():
     options = rounding.solver_options(["regularisation_decrease=0.01", " max_iterations = 50"])
     assert options.regularisation_decrease == 0.01 and options.max_iterations == 50
