@@ -15,13 +15,13 @@ program's text, whose metadata keep the Python stack that traced it, and its tim
   counted the same way).
 
 Operations the program's text gives no stack for (XLA's own copies, some products) are
-"unattributed"; the time between operations (launching them, the loops' control) is reported
+"unattributed", and listed apart with their result shapes and opcodes; the time between operations (launching them, the loops' control) is reported
 apart. The attribution reads the stack tables of the compiled program's text (``FileNames``,
 ``FunctionNames``, ``FileLocations``, ``StackFrames``, ``stack_frame_id=``), as jaxlib 0.10
 prints them; a jaxlib that prints none makes the script stop with a message saying so.
 
 Usage: python benchmarks/profile_iteration.py [--scenario take_off] [--knots N] [--skip 20]
-       [--iterations 10] [--top 40] [--cache DIR]
+       [--iterations 10] [--top 40] [--unattributed 15] [--cache DIR]
 """
 
 import os
@@ -47,6 +47,13 @@ from jaxmm.solver import interior_point as ip  # noqa: E402
 # pool's own spans, the end marks of operations, and the control operations that contain others.
 CONTAINERS = ("end:", "ThunkExecutor", "ThreadpoolListener", "while", "cond", "call")
 TABLES = ("FileNames", "FunctionNames", "FileLocations", "StackFrames")
+
+
+def instruction_signatures(text):
+    """{instruction name: "its result shape and opcode"} from a compiled program's text (say
+    ``f64[71,178,178]{2,1,0} copy``): what an operation without a stack was."""
+    found = (re.match(r"\s*(?:ROOT )?%([\w.\-]+) = (\S+) ([\w\-]+)\(", line) for line in text.splitlines())
+    return {m[1]: f"{m[2]} {m[3]}" for m in found if m}
 
 
 def stack_tables(text):
@@ -138,6 +145,7 @@ def main():
     parser.add_argument("--iterations", type=int, default=10, help="iterations profiled")
     parser.add_argument("--top", type=int, default=40, help="rows of the table by function")
     parser.add_argument("--cache", default=None, help="a persistent compilation cache directory")
+    parser.add_argument("--unattributed", type=int, default=15, help="rows of the table of unattributed operations")
     args = parser.parse_args()
     if args.skip < 0 or args.iterations < 1:
         parser.error("--skip must be ≥ 0 and --iterations ≥ 1")
@@ -153,7 +161,8 @@ def main():
     options = ip.iteration_options(options)
     log("compiling the iterations …")
     advance, compile_time = timed(lambda: optimise._advance.lower(task, state, options, options.max_iterations).compile())
-    origins = stack_tables(advance.as_text())
+    text = advance.as_text()
+    origins, signatures = stack_tables(text), instruction_signatures(text)
     start = jax.block_until_ready(advance(task, state, args.skip))
     if int(start.status) != int(ip.Status.RUNNING):
         sys.exit(f"the solve stopped ({ip.Status(int(start.status)).name}) within the first {args.skip} iterations")
@@ -174,9 +183,12 @@ def main():
     print(f"per iteration: {format_time(plain / done)} plain; {per(span)} profiled, of which {per(inside)} "
           f"inside {sum(counts.values()) / done:.0f} operations and {per(span - inside)} between them")
     by_module, by_function, operations = collections.Counter(), collections.Counter(), collections.Counter()
+    unattributed = collections.Counter()
     for name, ns in times.items():
         frames = jaxmm_frames(origins.get(name, ()))
         by_module[frames[-1][0] if frames else "(unattributed)"] += ns
+        if not frames:
+            unattributed[name] += ns
         for module, function in frames:
             by_function[f"{module}:{function}"] += ns
             operations[f"{module}:{function}"] += counts[name]
@@ -187,6 +199,10 @@ def main():
     print("\nBy function (inclusive: a function's operations include its callees'):\n")
     print(render(("function", "per iteration", "operations / it."),
                  [(f, per(ns), f"{operations[f] / done:.0f}") for f, ns in by_function.most_common(args.top)]))
+    print("\nThe unattributed operations, longest first (result shape and opcode from the program's text):\n")
+    print(render(("operation", "what", "per iteration", "runs / it."),
+                 [(name, signatures.get(name, "?"), per(ns), f"{counts[name] / done:.0f}")
+                  for name, ns in unattributed.most_common(args.unattributed)]))
 
 
 if __name__ == "__main__":

@@ -49,3 +49,17 @@ def test_operations_are_attributed_to_the_jaxmm_functions_that_emitted_them():
     rotation = [name for name in times if ("so3.py", "quaternion_to_rotation") in frames.get(name, ())]
     assert rotation and all(times[name] > 0 for name in rotation)
     assert any("cholesky" in name and not frames.get(name) for name in times)  # called here, not in jaxmm
+
+
+def test_every_instruction_has_its_shape_and_opcode():
+    """The unattributed operations are listed by what they are: each instruction of the compiled
+    text with its result shape and opcode (the Cholesky's input is f64[64,3,3])."""
+    matrices = np.broadcast_to(2 * np.eye(3), (64, 3, 3))
+    compiled = jax.jit(lambda m: jnp.linalg.cholesky(m) * 2.0).lower(matrices).compile()
+    text = compiled.as_text()
+    signatures = profile_iteration.instruction_signatures(text)
+    defined = {line.split("=")[0].strip().removeprefix("ROOT ").lstrip("%") for line in text.splitlines()
+               if line.strip().startswith(("%", "ROOT %")) and " = " in line}
+    assert signatures and set(signatures) <= defined
+    assert all(what.split(" ")[-1].replace("-", "_").isidentifier() for what in signatures.values())
+    assert any(what.startswith("f64[64,3,3]") for what in signatures.values())
