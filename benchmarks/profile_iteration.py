@@ -15,10 +15,11 @@ program's text, whose metadata keep the Python stack that traced it, and its tim
   counted the same way).
 
 Operations the program's text gives no stack for (XLA's own copies, some products) are
-"unattributed", and listed apart with their result shapes and opcodes; the time between operations (launching them, the loops' control) is reported
-apart. The attribution reads the stack tables of the compiled program's text (``FileNames``,
-``FunctionNames``, ``FileLocations``, ``StackFrames``, ``stack_frame_id=``), as jaxlib 0.10
-prints them; a jaxlib that prints none makes the script stop with a message saying so.
+"unattributed", and listed apart with their result shapes and opcodes; the time between
+operations (launching them, the loops' control) is reported apart. The attribution reads the
+stack tables of the compiled program's text (``FileNames``, ``FunctionNames``,
+``FileLocations``, ``StackFrames``, ``stack_frame_id=``), as jaxlib 0.10 prints them; a jaxlib
+that prints none makes the script stop with a message saying so.
 
 Usage: python benchmarks/profile_iteration.py [--scenario take_off] [--knots N] [--skip 20]
        [--iterations 10] [--top 40] [--unattributed 15] [--cache DIR]
