@@ -366,7 +366,7 @@ def run_adam(directory, part, mode, repeats, budget):
 def time_adam(robot, Q, urdf_xml, args, directory):
     """{(part, mode): result} for every ADAM part and mode, each in its own subprocess."""
     (directory / "ironcub.urdf").write_bytes(urdf_xml)
-    rotations = jax.vmap(jaxmm.so3.quaternion_to_rotation)(jnp.asarray(Q[:, 3:7]))
+    rotations = jax.vmap(jaxmm.rigid_body.so3.quaternion_to_rotation)(jnp.asarray(Q[:, 3:7]))
     H = np.tile(np.eye(4), (len(Q), 1, 1))
     H[:, :3, :3], H[:, :3, 3] = np.asarray(rotations), Q[:, :3]
     np.savez(directory / "adam_inputs.npz", H=H, s=Q[:, 7:], joints=np.array(robot.model.joint_names))

@@ -77,7 +77,7 @@ from machine import format_time, log, machine_lines, render, timed  # noqa: E402
 from jaxmm import analysis, io, optimise, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
-from jaxmm.transcription import stagewise  # noqa: E402
+from jaxmm import stagewise  # noqa: E402
 from jaxmm.transcription.variables import resample  # noqa: E402
 
 IPOPT_TOLERANCE = 1e-4  # the paper's IPOPT tol and constr_viol_tol (physical units)

@@ -8,7 +8,7 @@ a temporary file), over the same scaled decision vector (z̃ = z / d per knot, t
 What is measured (wall clock; run time = median over --repeats calls after one untimed warm-up
 call; compile and build times separately):
 
-* JAX (``jaxmm.transcription.stagewise``), each ``jax.jit``-compiled with
+* JAX (``jaxmm.stagewise``), each ``jax.jit``-compiled with
   ``jax.jit(f).lower(...).compile()`` (tracing, lowering and XLA compilation):
   - residuals: every constraint function and the cost (``stagewise.residuals``);
   - constraint Jacobian blocks: ``jax.jacfwd`` of the four constraint functions vmapped over
@@ -51,7 +51,7 @@ from machine import format_time, log, machine_lines  # noqa: E402
 from jaxmm import tasks  # noqa: E402
 from jaxmm.reference import ReferenceNLP  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
-from jaxmm.transcription import stagewise  # noqa: E402
+from jaxmm import stagewise  # noqa: E402
 
 SEED = 0
 TOLERANCE = 1e-9  # on |JAX − CasADi| / max(1, max |CasADi|)

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm import analysis, optimise
+from jaxmm import analysis, programs
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import stopping
 from jaxmm.tasks import initial_guess
@@ -168,7 +168,7 @@ def _check_guesses(guesses, expected, size=None):
         raise TypeError(f"guesses must be a batched Trajectory or a list of Trajectories, got {type(guesses).__name__}")
     if jnp.ndim(guesses.total_time) != 1:
         raise ValueError(f"guesses must have a leading batch axis (total_time of shape (B,)), got total_time of shape "
-                         f"{jnp.shape(guesses.total_time)}; solve one guess with optimise.solve_task, or stack "
+                         f"{jnp.shape(guesses.total_time)}; solve one guess with solve.solve_task, or stack "
                          "guesses with stack_trajectories")
     count = jnp.shape(guesses.total_time)[0]
     _check_shapes(guesses, expected, (count,), "guesses")
@@ -199,35 +199,35 @@ def _over(one, vectorised):
 
 def _instances(options, vectorised):
     """The solve of a batch of (task, guess) instances (see ``_over``)."""
-    return _over(lambda task, guess: optimise.solve_program(task, guess, options), vectorised)
+    return _over(lambda task, guess: programs.solve_program(task, guess, options), vectorised)
 
 
 @functools.partial(jax.jit, static_argnames=("options", "vectorised"))
 def _solve_batch(tasks, guesses, options, vectorised=True):
-    """``optimise.solve_program`` over a batched task and its guesses (see ``_instances``)."""
+    """``programs.solve_program`` over a batched task and its guesses (see ``_instances``)."""
     return _instances(options, vectorised)(tasks, guesses)
 
 
 # The batch solve in slices, for stopping.run (a time budget, Ctrl-C).
 @functools.partial(jax.jit, static_argnames=("options", "vectorised"))
 def _start_batch(tasks, guesses, options, vectorised):
-    return _over(lambda task, guess: optimise._start(task, guess, options, None, None), vectorised)(tasks, guesses)
+    return _over(lambda task, guess: programs.start(task, guess, options, None, None), vectorised)(tasks, guesses)
 
 
 @functools.partial(jax.jit, static_argnames=("options", "vectorised"))
 def _advance_batch(tasks, states, options, vectorised, until):
-    return _over(lambda task, state: optimise._advance(task, state, options, until), vectorised)(tasks, states)
+    return _over(lambda task, state: programs.advance(task, state, options, until), vectorised)(tasks, states)
 
 
 @functools.partial(jax.jit, static_argnames="vectorised")
 def _finish_batch(tasks, states, vectorised, stopped):
-    return _over(lambda task, state: optimise._finish(task, state, stopped), vectorised)(tasks, states)
+    return _over(lambda task, state: programs.finish(task, state, stopped), vectorised)(tasks, states)
 
 
 def batch_mesh(devices=None):
     """A one-axis ``jax.sharding.Mesh`` named "batch" over ``devices`` (default: every device
     ``jax.devices()`` sees: on several hosts, after ``jax.distributed.initialize()``, those of
-    all the hosts), for the ``mesh`` argument of ``solve_batch`` and ``solve_batch_tasks``."""
+    all the hosts), for the ``mesh`` argument of ``solve_batch``."""
     devices = jax.devices() if devices is None else list(devices)
     if not devices:
         raise ValueError("a batch mesh needs at least one device")
@@ -282,53 +282,43 @@ def _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible):
         options.max_iterations, time_budget=time_budget, interruptible=interruptible)
 
 
-def solve_batch(task, guesses, options=optimise.DEFAULT_OPTIONS, mesh=None, vectorised=None, *, time_budget=None,
-                interruptible=False):
-    """Solve one ``task`` from B initial guesses at once (multi-start).
+def solve_batch(tasks, guesses=None, options=programs.DEFAULT_OPTIONS, mesh=None, vectorised=None, *,
+                time_budget=None, interruptible=False):
+    """Solve many instances at once: one task from B initial guesses (multi-start), or B tasks
+    of one structure, instance i of ``tasks`` from guess i.
 
-    guesses: a batched ``Trajectory`` (leaves (B, N + 1, ...), total time (B,)), e.g. from
-    ``sample_guesses``, or a list of B ``Trajectory``s. options: ``ip.Options`` (static).
+    tasks: one ``Task`` (broadcast to the batch: multi-start), a batched ``Task``
+    (``stack_tasks``) or a list of B ``Task``s (stacked here), whose targets, heights, weights and
+    bounds may differ. guesses: a batched ``Trajectory`` (leaves (B, N + 1, ...), total time
+    (B,)), e.g. from ``sample_guesses``, or a list of B ``Trajectory``s; default, for batched
+    tasks, the published initial guess of each. options: ``ip.Options`` (static).
     Returns a batched ``TaskSolution`` (every leaf (B, ...)): see ``instance`` and ``summarise``.
+    A multi-start batch is the batch of B copies of its task: one compilation per (task
+    structure, B, options) serves both.
 
-    The task is broadcast to the batch, so this is ``solve_batch_tasks`` of B copies: one
-    compilation per (task structure, B, options) serves both. mesh: a ``batch_mesh`` to split
-    the instances over several devices (B a multiple of their number). vectorised: True, the
-    instances (of each device) advance together in one vmapped solve (what accelerators are
-    for); False, one after another in a ``lax.map`` (on a CPU as fast as separate solves, none
-    waiting for the slowest); default True, False on a mesh of CPU devices (see ``_vectorised``).
-    time_budget [s], interruptible: as for ``optimise.solve_task``, but off by default (the batch
-    is then one XLA call); the instances still running when the batch stops get status
-    ``TIME_LIMIT`` or ``INTERRUPTED``, the others keep theirs. Not with a mesh.
-    """
-    if not isinstance(task, Task):
-        raise TypeError(f"task must be a Task, got {type(task).__name__}")
-    if jnp.ndim(task.params.min_dt) != 0:
-        raise ValueError("task is batched (use solve_batch_tasks for a batch of tasks)")
-    guesses = _batched_guesses(guesses)
-    _check_guesses(guesses, jax.eval_shape(initial_guess, task))
-    return _run(broadcast_task(task, batch_size(guesses)), guesses, options, mesh, vectorised, time_budget,
-                interruptible)
-
-
-def solve_batch_tasks(tasks, guesses=None, options=optimise.DEFAULT_OPTIONS, mesh=None, vectorised=None, *,
-                      time_budget=None, interruptible=False):
-    """Solve B tasks of one structure at once, instance i of ``tasks`` from guess i.
-
-    tasks: a batched ``Task`` (``stack_tasks``) or a list of B ``Task``s (stacked here): their
-    targets, heights, weights, bounds may differ. guesses: a batched ``Trajectory`` or a list of
-    B, default the published initial guess of each task; mesh, vectorised, time_budget,
-    interruptible: as for ``solve_batch`` (a sweep over weights or targets split over devices).
-    Returns a batched ``TaskSolution``.
+    mesh: a ``batch_mesh`` to split the instances over several devices (B a multiple of their
+    number). vectorised: True, the instances (of each device) advance together in one vmapped
+    solve (what accelerators are for); False, one after another in a ``lax.map`` (on a CPU as
+    fast as separate solves, none waiting for the slowest); default True, False on a mesh of CPU
+    devices (see ``_vectorised``). time_budget [s], interruptible: as for ``solve.solve_task``,
+    but off by default (the batch is then one XLA call); the instances still running when the
+    batch stops get status ``TIME_LIMIT`` or ``INTERRUPTED``, the others keep theirs. Not with a
+    mesh.
     """
     if isinstance(tasks, Sequence):
         tasks = stack_tasks(tasks)
     if not isinstance(tasks, Task):
-        raise TypeError(f"tasks must be a batched Task or a list of Tasks, got {type(tasks).__name__}")
-    size = batch_size(tasks)
-    if guesses is None:
-        guesses = published_guesses(tasks)
-    guesses = _batched_guesses(guesses)
-    _check_guesses(guesses, jax.eval_shape(initial_guess, instance(tasks, 0)), size)
+        raise TypeError(f"tasks must be a Task, a batched Task or a list of Tasks, got {type(tasks).__name__}")
+    if jnp.ndim(tasks.params.min_dt) == 0:  # one task, many guesses
+        if guesses is None:
+            raise ValueError("a batch of one task needs its guesses (see sample_guesses)")
+        guesses = _batched_guesses(guesses)
+        _check_guesses(guesses, jax.eval_shape(initial_guess, tasks))
+        tasks = broadcast_task(tasks, batch_size(guesses))
+    else:
+        size = batch_size(tasks)
+        guesses = _batched_guesses(published_guesses(tasks) if guesses is None else guesses)
+        _check_guesses(guesses, jax.eval_shape(initial_guess, instance(tasks, 0)), size)
     return _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible)
 
 
@@ -522,7 +512,7 @@ def _rank_key(result, tolerance):
     return (tier, finite(result.violation), finite(result.objective))
 
 
-def summarise(task, batch_solution, *, tolerance=optimise.DEFAULT_OPTIONS.tolerance, contact_height=0.01):
+def summarise(task, batch_solution, *, tolerance=programs.DEFAULT_OPTIONS.tolerance, contact_height=0.01):
     """Rank the instances of a batched ``TaskSolution`` and group them by contact schedule.
 
     Ranking: converged instances first, then those feasible to ``tolerance`` (the solver's

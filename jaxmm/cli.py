@@ -122,9 +122,9 @@ def _task(args):
 
 
 def _solve(task, args, progress):
-    from jaxmm import optimise
+    from jaxmm import programs
 
-    options = optimise.DEFAULT_OPTIONS
+    options = programs.DEFAULT_OPTIONS
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     if getattr(args, "ipopt_slacks", False):
@@ -133,7 +133,7 @@ def _solve(task, args, progress):
         options = dataclasses.replace(options, progress=progress.iteration)
     with progress.compiling(f"the solve of {task.name} (N = {task.n_intervals})") as compiling:
         budget = getattr(args, "time_budget", None)
-        run = optimise.compile_solve(task, options=options, time_budget=budget, interruptible=budget is not None)
+        run = programs.compile_solve(task, options=options, time_budget=budget, interruptible=budget is not None)
     start = time.perf_counter()
     result = run()
     result.solution.status.block_until_ready()
@@ -170,7 +170,7 @@ def _solve_command(args):
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     written += [out / "validation.txt", out / "summary.json"]
     if not args.no_figures:
-        from jaxmm import animation, plots
+        from jaxmm.analysis import animation, plots
 
         written += list(plots.save_figures(task, result, out).values())
         if not args.no_animation:

@@ -26,6 +26,7 @@ atomically: a temporary file in the same directory, renamed over the target once
 import dataclasses
 import datetime
 import hashlib
+import importlib.metadata
 import json
 import os
 import tempfile
@@ -34,8 +35,8 @@ import zipfile
 import jax
 import numpy as np
 
-from jaxmm.centroidal import total_mass
-from jaxmm.optimise import TaskSolution
+from jaxmm.rigid_body.centroidal import total_mass
+from jaxmm.programs import TaskSolution
 from jaxmm.solver import interior_point as ip
 from jaxmm.transcription.problem import Task, TaskParams, Weights
 from jaxmm.transcription.variables import Knot, Trajectory
@@ -125,8 +126,6 @@ def save(path, task, result):
     Returns the path written. The directory must exist; an existing file is replaced only
     once the new one is complete.
     """
-    from jaxmm import __version__
-
     if not isinstance(task, Task) or not isinstance(result, TaskSolution):
         raise TypeError(f"save(path, task, result) needs a Task and a TaskSolution, got {type(task).__name__}, {type(result).__name__}")
     if result.trajectory.n_knots != task.n_knots:
@@ -140,7 +139,7 @@ def save(path, task, result):
     header = dict(
         format=FORMAT,
         version=VERSION,
-        jaxmm_version=__version__,
+        jaxmm_version=importlib.metadata.version("jaxmm"),
         saved_at=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         robot=_robot_header(task.robot),
         task=dict(

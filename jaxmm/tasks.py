@@ -6,7 +6,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm.kinematics import frame_poses
+from jaxmm.rigid_body.kinematics import frame_poses
 from jaxmm.robots import ironcub_description, load_ironcub
 from jaxmm.transcription.problem import INTEGRATION_RULES, SLACK_PENALTIES, Task, TaskParams, Weights
 from jaxmm.transcription.variables import Trajectory

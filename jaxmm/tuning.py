@@ -4,7 +4,7 @@ The paper hand-tuned 10–15 weights of eq. (32) per scenario. ``tune_weights`` 
 weights instead by minimising a loss of the optimal trajectory with an optax optimiser: each
 step solves the task (warm-started from the previous step's solution) and differentiates the
 optimum with respect to the weights by implicit differentiation at that solution
-(``jaxmm.differentiable.gradient``: one adjoint solve, no differentiation through the solver).
+(``jaxmm.solve.gradient``: one adjoint solve, no differentiation through the solver).
 Log-weights keep every weight positive and make the steps relative.
 """
 
@@ -15,8 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxmm.differentiable import gradient
-from jaxmm.optimise import DEFAULT_OPTIONS, solve_task
+from jaxmm.solve import DEFAULT_OPTIONS, gradient, solve_task
 from jaxmm.solver import interior_point as ip
 
 

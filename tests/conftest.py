@@ -51,7 +51,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import jaxmm  # noqa: E402
-from jaxmm import so3  # noqa: E402
+from jaxmm.rigid_body import so3  # noqa: E402
 
 # Compiled programs persist on disk, so the test processes (xdist workers, notebook kernels) that
 # solve the same problem structure compile it once per run (and once per machine, across runs).

@@ -27,7 +27,7 @@ def _standing_still(knots=6):
     A = np.zeros((6, 24))
     for i, c in enumerate(corners):
         A[:3, 3 * i : 3 * i + 3] = np.eye(3)
-        A[3:, 3 * i : 3 * i + 3] = np.asarray(jaxmm.so3.skew(c - com))
+        A[3:, 3 * i : 3 * i + 3] = np.asarray(jaxmm.rigid_body.so3.skew(c - com))
     b = np.concatenate([-mass * np.asarray(task.params.gravity), np.zeros(3)])
     forces = np.linalg.lstsq(A, b, rcond=None)[0].reshape(8, 3)
     idle = []

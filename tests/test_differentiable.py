@@ -1,4 +1,4 @@
-"""Gradients of iRonCub's optimal take-off with respect to its task (``jaxmm.differentiable``)
+"""Gradients of iRonCub's optimal take-off with respect to its task (``jaxmm.solve``)
 and weight tuning with optax (``jaxmm.tuning``), on the reduced take-off of ``conftest``.
 
 The gradient is the implicit derivative at the solution; the reference is central differences
@@ -15,7 +15,7 @@ import numpy as np
 import optax
 import pytest
 
-from jaxmm import analysis, differentiable, tasks, tuning
+from jaxmm import analysis, solve, tasks, tuning
 from jaxmm.optimise import solve_task
 from jaxmm.solver import interior_point as ip
 

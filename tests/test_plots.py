@@ -1,4 +1,4 @@
-"""Figures and animations of a trajectory (jaxmm.plots, jaxmm.animation, jaxmm.meshes).
+"""Figures and animations of a trajectory (jaxmm.analysis.plots, jaxmm.analysis.animation, jaxmm.robots.meshes).
 
 No solve: the reduced take-off's published guess, and a synthetic trajectory made from it with
 known flight knots, contact forces and thrusts. Everything renders with Agg through ``Figure``.
@@ -18,7 +18,9 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from PIL import Image
 
-from jaxmm import animation, assemble_urdf, meshes, optimise, plots, tasks
+from jaxmm.analysis import animation, plots
+from jaxmm import assemble_urdf, optimise, tasks
+from jaxmm.robots import meshes
 from jaxmm.robots import ironcub_description
 from jaxmm.solver import interior_point as ip
 

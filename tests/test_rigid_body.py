@@ -104,7 +104,7 @@ def test_kinematics_derivatives_in_one_pass_equal_autodiff(model, configurations
     """``centroidal_kinematics_derivatives`` (Jacobian and weighted curvature from one pass) gives
     the kinematics, ``jax.jacfwd`` of them and ``jax.hessian`` of their weighted sum (each through
     the plain kinematics); the kinematics are affine in the base position, whose tangents are left out."""
-    from jaxmm import centroidal
+    from jaxmm.rigid_body import centroidal
 
     indices = model.frame_indices(FRAMES)
     rng = np.random.default_rng(6)

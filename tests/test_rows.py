@@ -7,7 +7,7 @@ import pytest
 
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import rows
-from jaxmm.transcription.stagewise import RowSupport
+from jaxmm.stagewise import RowSupport
 
 
 def random_rows(K, n, ng, m, transition, seed):

@@ -1,4 +1,4 @@
-"""Implicit derivatives of optimal solutions (``jaxmm.solver.sensitivity``, ``jaxmm.differentiable``).
+"""Implicit derivatives of optimal solutions (``jaxmm.solver.sensitivity``, ``jaxmm.solve``).
 
 Three levels: a QP whose optimum is, for its active set, the solution of a linear KKT system,
 so that its exact derivative is the derivative of that closed form; a nonlinear stage-wise
@@ -17,7 +17,7 @@ import pytest
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import sensitivity
-from jaxmm.transcription.stagewise import StagewiseFunctions, StagewiseNLP
+from jaxmm.stagewise import StagewiseFunctions, StagewiseNLP
 
 EMPTY = jnp.zeros(0)
 ACTIVE_FIELDS = ("z_lower", "z_upper", "theta_lower", "theta_upper", "path_lower", "path_upper",

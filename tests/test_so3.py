@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 import jaxmm  # noqa: F401  (enables float64)
-from jaxmm import so3
+from jaxmm.rigid_body import so3
 
 vectors = st.lists(st.floats(-10, 10, allow_nan=False), min_size=3, max_size=3).map(np.array)
 quaternions = (

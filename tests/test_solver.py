@@ -9,8 +9,8 @@ import pytest
 
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import interior_point as ip
-from jaxmm.transcription import stagewise
-from jaxmm.transcription.stagewise import StagewiseFunctions, StagewiseNLP
+from jaxmm import stagewise
+from jaxmm.stagewise import StagewiseFunctions, StagewiseNLP
 
 K = 12
 EMPTY = jnp.zeros(0)

@@ -14,7 +14,7 @@ import pytest
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import stopping
-from jaxmm.transcription.stagewise import StagewiseFunctions, StagewiseNLP
+from jaxmm.stagewise import StagewiseFunctions, StagewiseNLP
 
 K = 10
 EMPTY = jnp.zeros(0)

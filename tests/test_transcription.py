@@ -11,7 +11,7 @@ import jaxmm
 from jaxmm.tasks import SCENARIOS, build_task, initial_guess, scenario
 from jaxmm.transcription import constraints, costs
 from jaxmm.transcription import nlp as transcription
-from jaxmm.transcription import stagewise
+from jaxmm import stagewise
 from jaxmm.transcription import variables as jaxmm_variables
 
 

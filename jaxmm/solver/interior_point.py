@@ -1,4 +1,4 @@
-"""A primal–dual interior-point solver for stage-wise NLPs (``jaxmm.transcription.stagewise``).
+"""A primal–dual interior-point solver for stage-wise NLPs (``jaxmm.stagewise``).
 
     minimise f(z, θ)  s.t.  c(z, θ) = 0,  l_g ≤ g(z, θ) ≤ u_g,  z_lo ≤ z ≤ z_hi,  θ_lo ≤ θ ≤ θ_hi
 
@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmm.solver import linalg, rows
-from jaxmm.transcription import stagewise
+from jaxmm import stagewise
 
 EQUALITIES = ("path_equality", "transition_equality")
 INEQUALITIES = ("path_inequality", "transition_inequality")
@@ -484,7 +484,7 @@ def advance(nlp, state, options=Options(), until=None):
     count; default and cap: options.max_iterations). Returns the new ``State``.
 
     ``advance(nlp, advance(nlp, s, o, k), o)`` is ``advance(nlp, s, o)``: a solve can be run in
-    slices, with the host deciding between them whether to go on (``optimise``'s time budget
+    slices, with the host deciding between them whether to go on (``solve.solve_task``'s time budget
     and Ctrl-C)."""
     K = state.P[0].shape[0]
     dtype = state.P[0].dtype

@@ -44,7 +44,7 @@ import numpy as np
 
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import linalg, rows
-from jaxmm.transcription import stagewise
+from jaxmm import stagewise
 
 GROUPS = ip.GROUPS
 _TINY = 1e-300

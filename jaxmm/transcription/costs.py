@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm import so3
+from jaxmm.rigid_body import so3
 
 
 def _sq(x):

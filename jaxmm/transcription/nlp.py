@@ -8,9 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm.centroidal import centroidal_kinematics_curvature, centroidal_kinematics_derivatives
+from jaxmm.rigid_body.centroidal import centroidal_kinematics_curvature, centroidal_kinematics_derivatives
 from jaxmm.transcription import constraints, costs
-from jaxmm.transcription.stagewise import RowSupport, StagewiseFunctions, StagewiseNLP
+from jaxmm.stagewise import RowSupport, StagewiseFunctions, StagewiseNLP
 from jaxmm.transcription.variables import Trajectory
 
 

@@ -1,9 +1,14 @@
-"""Solve a task: the task's stage-wise NLP handed to the interior-point solver, and the answer
-brought back as a trajectory in physical units.
+"""Internal: the compiled programs of a task's solve, for ``solve``, ``batch``, the command line
+and the diagnostics in ``tools/``. The public way to solve is ``jaxmm.solve.solve_task``.
 
-This is the public boundary where compilation happens: ``solve_task`` jit-compiles one solve per
-problem structure (robot, knot count, integration rule, options) and reuses it for every task of
-that structure, whatever its numbers (targets, weights, bounds).
+A solve is three programs: ``start``, ``advance`` to an iteration count, ``finish``. Run one
+after the other (or in slices, by ``solver.stopping.run``), every solve of a problem structure
+(robot, knot count, integration rule, options) shares the one heavy program, ``advance``,
+whatever its start (cold, warm, another scaling), its numbers (targets, weights, bounds), its
+time budget or its interrupts. ``solve_program`` is the whole solve as one traceable function
+(what ``batch`` vmaps); ``compile_solve`` compiles the three programs ahead of time;
+``differentiable_solve`` and ``adjoint`` are the implicitly differentiated solve and the adjoint
+solve at a found optimum (``solver.sensitivity``).
 """
 
 import dataclasses
@@ -11,12 +16,11 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from jaxmm import compilation
+from jaxmm import compilation, stagewise
 from jaxmm.solver import interior_point as ip
-from jaxmm.solver import stopping
+from jaxmm.solver import sensitivity, stopping
 from jaxmm.tasks import initial_guess
 from jaxmm.transcription import nlp as transcription
-from jaxmm.transcription import stagewise
 from jaxmm.transcription.problem import Task
 from jaxmm.transcription.variables import Trajectory
 
@@ -58,28 +62,28 @@ def task_solution(task, nlp, solution):
 
 def solve_program(task, guess, options, multipliers=None, bound_multipliers=None, scaling=None):
     """The whole solve of ``task`` from ``guess`` as one traceable function → ``TaskSolution``
-    (what ``batch`` vmaps; ``solve_task`` runs it as the three compiled slices below)."""
+    (what ``batch`` vmaps; ``solve_task`` runs it as the three compiled programs below)."""
     nlp = transcription.stagewise_nlp(task)
     Z0, theta0 = transcription.to_variables(task, guess)
     return task_solution(task, nlp, ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers, scaling))
 
 
-# The solve in three programs: start, advance to an iteration count, finish. Run one after the
-# other (or in slices, by stopping.run), every solve of a structure shares the one heavy program,
-# advance, whatever its start (cold, warm, another scaling), its time budget or its interrupts.
 @compilation.jit(static_argnames="options")
-def _start(task, guess, options, multipliers, bound_multipliers, scaling=None):
+def start(task, guess, options, multipliers, bound_multipliers, scaling=None):
+    """The solver's ``State`` at ``guess`` (``ip.start``)."""
     Z0, theta0 = transcription.to_variables(task, guess)
     return ip.start(transcription.stagewise_nlp(task), Z0, theta0, options, multipliers, bound_multipliers, scaling)
 
 
 @compilation.jit(static_argnames="options")
-def _advance(task, state, options, until):
+def advance(task, state, options, until):
+    """``state`` iterated until it stops or reaches iteration ``until`` (``ip.advance``)."""
     return ip.advance(transcription.stagewise_nlp(task), state, options, until)
 
 
 @compilation.jit
-def _finish(task, state, stopped):
+def finish(task, state, stopped):
+    """The ``TaskSolution`` of a last ``state``; ``stopped``: the status of a solve cut short."""
     nlp = transcription.stagewise_nlp(task)
     return task_solution(task, nlp, ip.finish(nlp, state, stopped))
 
@@ -128,47 +132,7 @@ def prepare(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None):
     return guess, options, multipliers, bound_multipliers
 
 
-def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_scaling=False, *,
-               time_budget=None, interruptible=False):
-    """Optimise ``task`` (a ``Task``) from ``guess`` (a ``Trajectory``; default: the published
-    initial guess). Returns a ``TaskSolution``; check ``.status`` and ``jaxmm.analysis.validate``.
-
-    warm_start: a previous ``TaskSolution`` of a task with the same structure (say, other
-    weights or targets): its trajectory becomes the default guess and its multipliers start the
-    solve, with the barrier parameter and bound push of ``WARM_START``.
-
-    The default tolerances: constraint violation ≤ 1e-6 (100× tighter than the paper's IPOPT
-    ``constr_viol_tol``) and scaled stationarity ≤ 1e-4 (the paper's IPOPT ``tol``).
-    same_scaling: solve in the warm start's cost and row scaling instead of the one computed at
-    the new starting point, so that the answers to nearby tasks differ only through the task
-    (what finite differences of re-solves need: the barrier problem at μ > 0 depends on the
-    cost factor, which follows the weights).
-
-    time_budget: seconds [s] of iterating after the first iteration (which includes compiling,
-    on a structure's first solve); when they run out the solve stops with status
-    ``TIME_LIMIT`` and its last iterate. interruptible: the first Ctrl-C (SIGINT, a notebook's
-    interrupt) stops the solve the same way with status ``INTERRUPTED``; a second one raises
-    KeyboardInterrupt. Both run the solve in slices of about half a second
-    (``jaxmm.solver.stopping``); without them (the default) the iterations are one XLA call,
-    which a Ctrl-C cannot stop.
-
-    Raises TypeError/ValueError naming the problem for a guess or warm start of the wrong type,
-    shape or dtype, or with non-finite entries, and for a time budget that is not positive.
-    """
-    guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
-    stopping.check_budget(time_budget)
-    scaling = None
-    if same_scaling:
-        if warm_start is None:
-            raise ValueError("same_scaling=True needs a warm_start (whose scaling to keep)")
-        scaling = warm_start.solution.scaling
-    state = _start(task, guess, options, multipliers, bound_multipliers, scaling)
-    options = ip.iteration_options(options)
-    return _run(state, lambda s, until: _advance(task, s, options, until), lambda s, stopped: _finish(task, s, stopped),
-                options.max_iterations, time_budget, interruptible)
-
-
-def _run(state, advance, finish, max_iterations, time_budget, interruptible):
+def run(state, advance, finish, max_iterations, time_budget, interruptible):
     """A started solve to its end: one call of ``advance`` when nothing needs checking between
     iterations, else slices under ``stopping.run``."""
     if time_budget is None and not interruptible:
@@ -187,18 +151,38 @@ def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *,
     solve includes no compiling)."""
     guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
     stopping.check_budget(time_budget)
-    start = _start.lower(task, guess, options, multipliers, bound_multipliers).compile()
-    state = jax.eval_shape(lambda *arguments: _start(*arguments[:2], options, *arguments[2:]), task, guess, multipliers,
+    started = start.lower(task, guess, options, multipliers, bound_multipliers).compile()
+    state = jax.eval_shape(lambda *arguments: start(*arguments[:2], options, *arguments[2:]), task, guess, multipliers,
                            bound_multipliers)
     options = ip.iteration_options(options)
-    advance = _advance.lower(task, state, options, options.max_iterations).compile()
-    finish = _finish.lower(task, state, int(ip.Status.MAX_ITERATIONS)).compile()
+    advanced = advance.lower(task, state, options, options.max_iterations).compile()
+    finished = finish.lower(task, state, int(ip.Status.MAX_ITERATIONS)).compile()
 
-    def run(other=None):
+    def solve(other=None):
         if other is not None:
             check_guess(task, other)
-        state = start(task, guess if other is None else other, multipliers, bound_multipliers)
-        return _run(state, lambda s, until: advance(task, s, until), lambda s, stopped: finish(task, s, stopped),
-                    options.max_iterations, time_budget, interruptible)
+        state = started(task, guess if other is None else other, multipliers, bound_multipliers)
+        return run(state, lambda s, until: advanced(task, s, until), lambda s, stopped: finished(task, s, stopped),
+                   options.max_iterations, time_budget, interruptible)
 
-    return run
+    return solve
+
+
+@compilation.jit(static_argnames=("options", "settings"))
+def differentiable_solve(task, guess, options, settings, multipliers, bound_multipliers):
+    """The solve of ``task`` whose ``TaskSolution`` has implicit reverse-mode derivatives with
+    respect to ``task`` (``sensitivity.differentiable_solve``)."""
+    problem = transcription.stagewise_nlp(task)
+    # The optimum does not depend on the starting point: no derivative flows into the guess.
+    Z0, theta0 = jax.lax.stop_gradient(transcription.to_variables(task, guess))
+    solution = sensitivity.differentiable_solve(problem, Z0, theta0, options, multipliers, bound_multipliers, settings)
+    return task_solution(task, problem, solution)
+
+
+@compilation.jit
+def adjoint(task, solution, cotangent):
+    """(task_bar, diagnostics): the cotangent (Z_bar, theta_bar) of a solved task's variables
+    pulled back to ``task`` by one adjoint KKT solve at ``solution`` (``sensitivity.vjp``)."""
+    problem, pull_task = jax.vjp(transcription.stagewise_nlp, task)
+    nlp_bar, diagnostics = sensitivity.vjp(problem, solution, *cotangent)
+    return pull_task(nlp_bar)[0], diagnostics

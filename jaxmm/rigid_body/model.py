@@ -82,7 +82,7 @@ class Topology:
         return support
 
 
-def _lookup(names, name, what):
+def lookup(names, name, what):
     if not isinstance(name, str):
         raise TypeError(f"{what} name must be a string, got {type(name).__name__}")
     try:
@@ -167,7 +167,7 @@ class Model:
             if not 0 <= frame < len(self.frame_names):
                 raise IndexError(f"frame index {frame} out of range [0, {len(self.frame_names)})")
             return int(frame)
-        return _lookup(self.frame_names, frame, "frame")
+        return lookup(self.frame_names, frame, "frame")
 
     def frame_indices(self, frames):
         """Indices of several frames (names or indices), as a tuple of ints."""
@@ -177,4 +177,4 @@ class Model:
 
     def joint_index(self, joint):
         """Position in s of an optimised joint given by name."""
-        return _lookup(self.joint_names, joint, "optimised joint")
+        return lookup(self.joint_names, joint, "optimised joint")

@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from jaxmm import so3
-from jaxmm.configuration import check_configuration, check_velocity
-from jaxmm.kinematics import body_poses, joint_axes_world
+from jaxmm.rigid_body import so3
+from jaxmm.rigid_body.configuration import check_configuration, check_velocity
+from jaxmm.rigid_body.kinematics import body_poses, joint_axes_world
 
 
 def total_mass(model):

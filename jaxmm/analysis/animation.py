@@ -1,6 +1,6 @@
 """The robot in 3D: a snapshot strip at chosen knots (the paper's Fig. 2a) and an animation.
 
-The robot is drawn from its link meshes (``jaxmm.meshes``) or as a stick figure (links as
+The robot is drawn from its link meshes (``jaxmm.robots.meshes``) or as a stick figure (links as
 segments between joint origins, feet as the rectangles of their contact corners); jets as
 cylinders; the forces on the robot as arrows force_scale [m/N] long: the thrust −T R e_z of
 each jet (orange), drawn from the jet's top along its axis (its line of action, so the arrow
@@ -20,8 +20,9 @@ from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
-from jaxmm import analysis, meshes
-from jaxmm.kinematics import body_poses, frame_poses
+from jaxmm.analysis import validation
+from jaxmm.robots import meshes
+from jaxmm.rigid_body.kinematics import body_poses, frame_poses
 
 STYLES = ("mesh", "stick")
 FORCE_SCALE = 1.0 / 500.0  # [m/N]: a contact corner holding 1/8 of iRonCub's weight is 9 cm long
@@ -98,7 +99,7 @@ def _feet(robot, corners):
     """[(body index, sole polygon (k, 3) [m])]: each foot's corners ordered around their centre."""
     model = robot.model
     feet = []
-    for _, members in analysis.corner_groups(robot):
+    for _, members in validation.corner_groups(robot):
         points = corners[list(members)]
         centre = points.mean(axis=0)
         order = np.argsort(np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0]))
@@ -190,9 +191,9 @@ def draw_robot(ax, task, configuration, *, thrust=None, contact_forces=None, sty
 
 def default_knots(task, trajectory, count=6):
     """count knots evenly spread from 0 to N (both included) and the first knot of each flight
-    phase (``analysis.flight_knots``), as a sorted tuple of ints."""
+    phase (``validation.flight_knots``), as a sorted tuple of ints."""
     even = np.round(np.linspace(0, task.n_intervals, min(count, task.n_knots)))
-    flight = analysis.flight_knots(analysis.airborne_corners(trajectory))
+    flight = validation.flight_knots(validation.airborne_corners(trajectory))
     take_offs = [k for k in flight if k - 1 not in flight]
     return tuple(int(k) for k in np.unique(np.concatenate([even, take_offs])))
 
@@ -206,7 +207,7 @@ def plot_snapshots(task, trajectory, knots=None, *, style="mesh", urdf=None, fig
     knots: knot indices in 0..N (default: ``default_knots``). style, urdf, resolution: as
     ``draw_robot``. view: (elevation, azimuth) [deg]. Returns the Figure.
     """
-    analysis.check_trajectory(task, trajectory)
+    validation.check_trajectory(task, trajectory)
     knots = default_knots(task, trajectory) if knots is None else tuple(knots)
     bad = [k for k in knots if not isinstance(k, (int, np.integer)) or not 0 <= k <= task.n_intervals]
     if not knots or bad:
@@ -278,7 +279,7 @@ def animate(task, trajectory, path, fps=10, *, style="mesh", urdf=None, force_sc
     motion interpolated linearly between knots (``interpolate``), a fixed camera that frames the
     whole motion, a time label. size [in] and dpi set the frame size. style, urdf, resolution,
     force_scale, view: as ``plot_snapshots``. Returns the path (a ``pathlib.Path``)."""
-    analysis.check_trajectory(task, trajectory)
+    validation.check_trajectory(task, trajectory)
     path = pathlib.Path(path)
     if path.suffix.lower() not in (".gif", ".mp4"):
         raise ValueError(f"the animation path must end in .gif or .mp4, got {str(path)!r}")

@@ -3,7 +3,7 @@
 Every function builds on ``matplotlib.figure.Figure`` directly, so it works headless, in CI and
 inline in Jupyter, and returns the Figure (pass ``fig=`` or ``ax=`` to draw into your own).
 Times are in seconds from the first knot; flight phases (every contact corner off the ground,
-``analysis.flight_knots``) are shaded red as in the paper's Fig. 2b–4b.
+``validation.flight_knots``) are shaded red as in the paper's Fig. 2b–4b.
 """
 
 import pathlib
@@ -12,12 +12,13 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from jaxmm import analysis, animation
-from jaxmm.centroidal import total_mass
+from jaxmm.analysis import validation
+from jaxmm.analysis import animation
+from jaxmm.rigid_body.centroidal import total_mass
 from jaxmm.solver import interior_point as ip
 
 FLIGHT_COLOUR = "tab:red"
-CONTACT_HEIGHT = 0.01  # [m] a corner higher than this is off the ground (as ``analysis.validate``)
+CONTACT_HEIGHT = 0.01  # [m] a corner higher than this is off the ground (as ``validation.validate``)
 
 
 def _time(trajectory):
@@ -31,11 +32,11 @@ def _runs(knots):
 
 def flight_intervals(trajectory, contact_height=CONTACT_HEIGHT):
     """The flight phases as ((t_start, t_stop), ...) [s]: each run of consecutive flight knots
-    k0..k1 (``analysis.flight_knots``) spans [t_k0 − Δt/2, t_k1 + Δt/2] clipped to the horizon,
+    k0..k1 (``validation.flight_knots``) spans [t_k0 − Δt/2, t_k1 + Δt/2] clipped to the horizon,
     so that a single flight knot still shows."""
     time = _time(trajectory)
     half = 0.5 * (time[1] - time[0])
-    runs = _runs(analysis.flight_knots(analysis.airborne_corners(trajectory, contact_height)))
+    runs = _runs(validation.flight_knots(validation.airborne_corners(trajectory, contact_height)))
     return tuple(
         (float(max(time[run[0]] - half, time[0])), float(min(time[run[-1]] + half, time[-1]))) for run in runs
     )
@@ -57,7 +58,7 @@ def plot_forces(task, trajectory, *, fig=None, contact_height=CONTACT_HEIGHT):
     and the total vertical contact force Σ f_z [N] (dashed: the weight m g), against time,
     flight phases shaded. A robot without jets gets the contact-force panel only.
     Returns the Figure (its axes top to bottom)."""
-    analysis.check_trajectory(task, trajectory)
+    validation.check_trajectory(task, trajectory)
     fig = _figure(fig, figsize=(7, 7 if task.layout.n_jets else 3), layout="constrained")
     time, knots = _time(trajectory), trajectory.knots
     jets = task.robot.jet_frames
@@ -90,12 +91,12 @@ def plot_forces(task, trajectory, *, fig=None, contact_height=CONTACT_HEIGHT):
 def plot_com(task, trajectory, *, fig=None, contact_height=CONTACT_HEIGHT):
     """CoM x, y, z [m] against time and a side view z against x, with the task's targets
     (x_0 at t = 0, x_N at the end, the mid-horizon height bound) and the CoM re-simulated from
-    the forces alone (``analysis.resimulate_com``, dashed). Returns the Figure."""
-    analysis.check_trajectory(task, trajectory)
+    the forces alone (``validation.resimulate_com``, dashed). Returns the Figure."""
+    validation.check_trajectory(task, trajectory)
     fig = _figure(fig, figsize=(10, 6), layout="constrained")
     grid = fig.add_gridspec(3, 2, width_ratios=(3, 2))
     time, com = _time(trajectory), np.asarray(trajectory.knots.com)
-    resimulated = analysis.resimulate_com(task, trajectory)
+    resimulated = validation.resimulate_com(task, trajectory)
     params = task.params
     initial, final = np.asarray(params.initial_com), np.asarray(params.final_com)
     mid_height, middle = float(params.mid_com_height), task.n_intervals // 2
@@ -141,17 +142,17 @@ def plot_com(task, trajectory, *, fig=None, contact_height=CONTACT_HEIGHT):
 
 def plot_contact_schedule(task, trajectory, *, ax=None, contact_height=CONTACT_HEIGHT):
     """Gait diagram: one row per contact corner, grouped per foot; a bar where the corner is on
-    the ground (c_z ≤ contact_height [m], ``analysis.airborne_corners``), each knot covering
+    the ground (c_z ≤ contact_height [m], ``validation.airborne_corners``), each knot covering
     ±Δt/2 around its time [s]; flight phases shaded. Returns the Figure."""
-    analysis.check_trajectory(task, trajectory)
+    validation.check_trajectory(task, trajectory)
     fig = Figure(figsize=(8, 0.35 * task.layout.n_contacts + 1.5), layout="constrained") if ax is None else ax.figure
     ax = fig.add_subplot() if ax is None else ax
     time = _time(trajectory)
     half = 0.5 * (time[1] - time[0])
-    grounded = ~analysis.airborne_corners(trajectory, contact_height)
+    grounded = ~validation.airborne_corners(trajectory, contact_height)
     names = task.robot.contact_frames
     ticks, labels, row = [], [], 0
-    for group, (label, members) in enumerate(analysis.corner_groups(task.robot)):
+    for group, (label, members) in enumerate(validation.corner_groups(task.robot)):
         colour = f"C{group}"
         for corner in members:
             on = np.flatnonzero(grounded[:, corner])
@@ -177,7 +178,7 @@ def plot_joints(task, trajectory, *, fig=None, columns=6, contact_height=CONTACT
     """One panel per optimised joint: s [deg] against time, its limits (the task's, grey
     bands beyond them) and the reference posture s̄ (dotted), flight phases shaded.
     Returns the Figure."""
-    analysis.check_trajectory(task, trajectory)
+    validation.check_trajectory(task, trajectory)
     names = task.robot.model.joint_names
     rows = -(-len(names) // columns)
     fig = _figure(fig, figsize=(2.3 * columns, 1.7 * rows + 0.6), layout="constrained")
@@ -272,10 +273,10 @@ def plot_convergence(result, *, fig=None, tolerance=ip.Options().tolerance):
 
 
 def plot_validation(task, trajectory, *, ax=None):
-    """The checks of ``analysis.validate`` as bars of value / limit on a log axis (≤ 1 passes:
+    """The checks of ``validation.validate`` as bars of value / limit on a log axis (≤ 1 passes:
     green; red fails), each labelled with its value (the check's units). Returns the Figure."""
-    analysis.check_trajectory(task, trajectory)
-    report = analysis.validate(task, trajectory)
+    validation.check_trajectory(task, trajectory)
+    report = validation.validate(task, trajectory)
     fig = Figure(figsize=(8, 0.3 * len(report.checks) + 1.2), layout="constrained") if ax is None else ax.figure
     ax = fig.add_subplot() if ax is None else ax
     floor = 1e-12  # exactly satisfied checks show at the floor of the log axis

@@ -85,7 +85,7 @@ def structure(task, knot_size=None, coupled=None):
     its last ``coupled`` columns coupled instead of the task's (K and m the task's)."""
     from jaxmm.solver import rows
     from jaxmm.transcription import nlp as transcription
-    from jaxmm.transcription import stagewise
+    from jaxmm import stagewise
     from jaxmm.tasks import initial_guess
 
     Z, theta = transcription.to_variables(task, initial_guess(task))
@@ -178,7 +178,8 @@ def parallel_work(task, mesh=None):
     from jax.sharding import NamedSharding
     from jax.sharding import PartitionSpec as P
 
-    from jaxmm import centroidal, tasks
+    from jaxmm.rigid_body import centroidal
+    from jaxmm import tasks
     from jaxmm.solver import linalg
 
     K, n, coupled, m = structure(task)

@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm import so3
-from jaxmm.configuration import check_configuration
+from jaxmm.rigid_body import so3
+from jaxmm.rigid_body.configuration import check_configuration
 
 
 def joint_positions_all(model, q):

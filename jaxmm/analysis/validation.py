@@ -12,8 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm.centroidal import total_mass
-from jaxmm.kinematics import frame_poses
+from jaxmm.rigid_body.centroidal import total_mass
+from jaxmm.rigid_body.kinematics import frame_poses
 from jaxmm.physics.jets import thrust_forces
 from jaxmm.transcription import constraints
 

@@ -1,4 +1,4 @@
-"""Link meshes of a robot in the frames of its bodies, for drawing (``jaxmm.animation``).
+"""Link meshes of a robot in the frames of its bodies, for drawing (``jaxmm.analysis.animation``).
 
 The meshes are the URDF's visual elements. ``package://name/path`` URIs are looked up under the
 URDF's folder and its ancestors and under icub-models' shared data, where the iCub meshes of the
@@ -13,8 +13,8 @@ import pathlib
 
 import numpy as np
 
-from jaxmm.robots import assemble_urdf, ironcub_description
-from jaxmm.urdf import read_urdf
+from jaxmm.robots.ironcub import assemble_urdf, ironcub_description
+from jaxmm.rigid_body.urdf import read_urdf
 
 RESOLUTION = 0.02  # [m] grid of the vertex clustering
 DEFAULT_COLOUR = (0.75, 0.75, 0.75)

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import yourdfpy
 
-from jaxmm.model import Model, Topology, _lookup
+from jaxmm.rigid_body.model import Model, Topology, lookup
 
 _MOVING = ("revolute", "continuous", "prismatic")
 
@@ -136,9 +136,9 @@ def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=T
     for j in joints:
         if j in joint_types and joint_types[j] == "fixed":
             raise ValueError(f"joint {j!r} is fixed and cannot be optimised")
-        _lookup(moving_names, j, "joint")
+        lookup(moving_names, j, "joint")
     for j in locked:
-        _lookup(moving_names, j, "joint")
+        lookup(moving_names, j, "joint")
         if j in joints:
             raise ValueError(f"joint {j!r} is both optimised and locked")
 

@@ -1,10 +1,10 @@
-"""Configurations q = (p, ρ, s) and velocities ν = (ṗ, ω, ṡ); conventions in ``jaxmm.model``."""
+"""Configurations q = (p, ρ, s) and velocities ν = (ṗ, ω, ṡ); conventions in ``jaxmm.rigid_body.model``."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm import so3
+from jaxmm.rigid_body import so3
 
 # |‖ρ‖ − 1| accepted in a configuration given by value: the kinematics normalise ρ, so a solver's
 # drift is harmless; a norm off by more than this is a mistake (angles, zeros, a wrong layout).

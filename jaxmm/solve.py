@@ -1,0 +1,123 @@
+"""Solve a task, and differentiate its optimum: the task's stage-wise NLP handed to the
+interior-point solver, and the answer brought back as a trajectory in physical units.
+
+``solve_task`` is the one way to solve a task. It jit-compiles one solve per problem structure
+(robot, knot count, integration rule, options) and reuses it for every task of that structure,
+whatever its numbers (targets, weights, bounds). With ``differentiable=True`` its
+``TaskSolution`` is differentiable (reverse mode) with respect to every float leaf of the
+``Task`` (cost weights, targets x₀ and x_N, the mid-horizon height, jet coefficients, bounds, the
+robot model's numbers), by implicit differentiation of the KKT conditions at the solution
+(``jaxmm.solver.sensitivity``), never through the solver's iterations:
+
+    def impulse(weights):
+        task = dataclasses.replace(base, weights=weights)
+        result = solve_task(task, warm_start=previous, differentiable=True)
+        knots = result.trajectory.knots
+        return jnp.sum(knots.thrust[:-1]) * result.trajectory.total_time / task.n_intervals
+
+    jax.grad(impulse)(base.weights)
+
+``gradient`` differentiates a solution already found without solving again: one adjoint solve
+at that solution, compiled apart from the solver.
+
+The derivative is that of the local optimum the solver found, with its active set held fixed
+(smoothed by the final barrier parameter, see ``jaxmm.solver.sensitivity``): it is the true
+derivative where the active set does not change under the perturbation. Gradients are NaN when
+the solve did not converge or the KKT system could not be solved accurately (see
+``sensitivity.Options``).
+"""
+
+import jax
+
+from jaxmm import programs
+from jaxmm.programs import DEFAULT_OPTIONS, WARM_START, TaskSolution
+from jaxmm.solver import interior_point as ip
+from jaxmm.solver import sensitivity, stopping
+from jaxmm.transcription import nlp as transcription
+
+__all__ = ["DEFAULT_OPTIONS", "WARM_START", "TaskSolution", "gradient", "solve_task"]
+
+
+def _differentiable(task, guess, options, warm_start, settings, time_budget, interruptible, same_scaling):
+    if time_budget is not None or interruptible or same_scaling:
+        raise ValueError("a differentiable solve is one call: it takes no time_budget, interruptible or same_scaling")
+    settings = sensitivity.Options() if settings is True else settings
+    if not isinstance(settings, sensitivity.Options):
+        raise TypeError(f"differentiable must be a bool or sensitivity.Options, got {type(settings).__name__}")
+    guess, options, multipliers, bound_multipliers = programs.prepare(task, guess, options, warm_start)
+    return programs.differentiable_solve(task, guess, options, settings, multipliers, bound_multipliers)
+
+
+def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_scaling=False, *,
+               differentiable=False, time_budget=None, interruptible=False):
+    """Optimise ``task`` (a ``Task``) from ``guess`` (a ``Trajectory``; default: the published
+    initial guess). Returns a ``TaskSolution``; check ``.status`` and ``jaxmm.analysis.validate``.
+
+    options: solver ``interior_point.Options`` (static: another value compiles another solve).
+    The default tolerances: constraint violation ≤ 1e-6 (100× tighter than the paper's IPOPT
+    ``constr_viol_tol``) and scaled stationarity ≤ 1e-4 (the paper's IPOPT ``tol``).
+
+    warm_start: a previous ``TaskSolution`` of a task with the same structure (say, other
+    weights or targets): its trajectory becomes the default guess and its multipliers start the
+    solve, with the barrier parameter and bound push of ``WARM_START``.
+    same_scaling: solve in the warm start's cost and row scaling instead of the one computed at
+    the new starting point, so that the answers to nearby tasks differ only through the task
+    (what finite differences of re-solves need: the barrier problem at μ > 0 depends on the
+    cost factor, which follows the weights).
+
+    differentiable: True (or a ``sensitivity.Options``) makes the returned ``trajectory``,
+    ``solution.Z``, ``solution.theta``, ``solution.multipliers``, ``solution.objective`` and the
+    violations differentiable in reverse mode with respect to the float leaves of ``task``
+    (integer and static fields get no cotangent; no derivative flows into the guess); the other
+    statistics carry no gradient. Such a solve is one XLA call.
+
+    time_budget: seconds [s] of iterating after the first iteration (which includes compiling,
+    on a structure's first solve); when they run out the solve stops with status
+    ``TIME_LIMIT`` and its last iterate. interruptible: the first Ctrl-C (SIGINT, a notebook's
+    interrupt) stops the solve the same way with status ``INTERRUPTED``; a second one raises
+    KeyboardInterrupt. Both run the solve in slices of about half a second
+    (``jaxmm.solver.stopping``); without them (the default) the iterations are one XLA call,
+    which a Ctrl-C cannot stop.
+
+    Raises TypeError/ValueError naming the problem for a guess or warm start of the wrong type,
+    shape or dtype, or with non-finite entries, and for a time budget that is not positive.
+    """
+    if differentiable is not False:
+        return _differentiable(task, guess, options, warm_start, differentiable, time_budget, interruptible,
+                               same_scaling)
+    guess, options, multipliers, bound_multipliers = programs.prepare(task, guess, options, warm_start)
+    stopping.check_budget(time_budget)
+    scaling = None
+    if same_scaling:
+        if warm_start is None:
+            raise ValueError("same_scaling=True needs a warm_start (whose scaling to keep)")
+        scaling = warm_start.solution.scaling
+    state = programs.start(task, guess, options, multipliers, bound_multipliers, scaling)
+    options = ip.iteration_options(options)
+    return programs.run(state, lambda s, until: programs.advance(task, s, options, until),
+                        lambda s, stopped: programs.finish(task, s, stopped), options.max_iterations, time_budget,
+                        interruptible)
+
+
+def gradient(task, result, loss):
+    """d loss / d task at a solved task, by implicit differentiation at ``result`` (no re-solve).
+
+    task: the ``Task`` that was solved; result: its ``TaskSolution`` (``solve_task``,
+    converged); loss(task, trajectory) → () a differentiable scalar of the optimal
+    ``Trajectory`` that may also read the task. Returns (value, task_bar, diagnostics):
+    task_bar has the structure of ``task`` with d loss / d leaf on every float leaf (weights,
+    targets, bounds, the model's numbers; float0 on integer leaves), the explicit dependence of
+    ``loss`` on ``task`` included; diagnostics: ``sensitivity.Diagnostics`` (check
+    ``diagnostics.reliable()``: it is False when the solve did not converge or the adjoint KKT
+    system could not be solved accurately, and then task_bar is not a derivative).
+    """
+    solution = result.solution
+
+    def of(Z, theta, task):
+        return loss(task, transcription.to_trajectory(task, Z, theta))
+
+    value, (Z_bar, theta_bar, direct) = jax.value_and_grad(of, argnums=(0, 1, 2), allow_int=True)(
+        solution.Z, solution.theta, task)
+    implicit, diagnostics = programs.adjoint(task, solution, (Z_bar, theta_bar))
+    total = jax.tree.map(lambda a, b: a if a.dtype == jax.dtypes.float0 else a + b, implicit, direct)
+    return value, total, diagnostics
