@@ -10,14 +10,14 @@ batches are nested and the sequential runs solve the same guesses.
 What is measured (wall clock):
 
 * per batch size B (--sizes, default 1 8 32 64): compile time =
-  ``batch._solve_batch.lower(tasks, guesses, options).compile()`` with ``tasks`` the task
+  ``programs.batch_solve.lower(tasks, guesses, options).compile()`` with ``tasks`` the task
   broadcast to B (``batch.broadcast_task``, what ``solve_batch`` does) (tracing, lowering and
   XLA compilation; each B is a new compilation), and solve time = median over --repeats calls
   of the compiled executable (``jax.block_until_ready``; compiled ahead of time, no warm-up
   call needed); solve time / B; the iterations of the batch (the loop runs until its slowest
   instance stops: max over instances) and the instances' own iterations (min–max); statuses.
 * sequential: the first --sequential guesses (default: the largest B) solved one after another
-  with ``optimise.compile_solve`` compiled once for one guess (compile reported apart), each call
+  with ``programs.compile_solve`` compiled once for one guess (compile reported apart), each call
   timed once; their sum, and their median for "one solve".
 * ratios: batch solve time / (one sequential solve), the issue's goal being ≤ 8 for B = 64,
   and the sequential time of the same B guesses / batch solve time (> 1: the batch is faster).
@@ -56,7 +56,7 @@ import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402, F401  (enables float64)
 from machine import format_time, log, machine_lines, render, timed  # noqa: E402
-from jaxmm import batch, optimise, tasks  # noqa: E402
+from jaxmm import batch, programs, solve, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 
 SCENARIO = "take_off"
@@ -78,7 +78,7 @@ def statuses(codes):
 def run_batch(task, guesses, options, repeats):
     """(compile seconds, median solve seconds, batched TaskSolution)."""
     batched_task = batch.broadcast_task(task, batch.batch_size(guesses))
-    compiled, compile_time = timed(lambda: batch._solve_batch.lower(batched_task, guesses, options).compile())
+    compiled, compile_time = timed(lambda: programs.batch_solve.lower(batched_task, guesses, options).compile())
     times, result = [], None
     for _ in range(repeats):
         result, seconds = timed(lambda: jax.block_until_ready(compiled(batched_task, guesses)))
@@ -89,7 +89,7 @@ def run_batch(task, guesses, options, repeats):
 def run_sequential(task, guesses, options):
     """(compile seconds, [solve seconds], [TaskSolution]) of the guesses one after another."""
     first = batch.instance(guesses, 0)
-    compiled, compile_time = timed(lambda: optimise.compile_solve(task, first, options))
+    compiled, compile_time = timed(lambda: programs.compile_solve(task, first, options))
     times, results = [], []
     for i in range(batch.batch_size(guesses)):
         guess = batch.instance(guesses, i)
@@ -130,7 +130,7 @@ def main():
     sequential = max(args.sizes) if args.sequential is None else args.sequential
     if not 1 <= sequential <= max(args.sizes):
         parser.error(f"--sequential must be between 1 and the largest batch size {max(args.sizes)}")
-    options = optimise.DEFAULT_OPTIONS
+    options = solve.DEFAULT_OPTIONS
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
 

@@ -1,5 +1,5 @@
 """Solve the four published scenarios with the JAX interior-point solver
-(``jaxmm.optimise.solve_task``) from the published initial guess, and optionally with the IPOPT
+(``jaxmm.solve.solve_task``) from the published initial guess, and optionally with the IPOPT
 reference (``jaxmm.reference.solve_ipopt``) from the same guess, in the same run.
 
 Each scenario is ``tasks.scenario(name)`` on the default assembled iRonCub, at its published N
@@ -9,7 +9,7 @@ as in the published runs; --slack-penalty squared solves the paper's text's vari
 
 What is measured (wall clock):
 
-* ours: compile time = ``jaxmm.optimise.compile_solve(task, guess, options)``
+* ours: compile time = ``jaxmm.programs.compile_solve(task, guess, options)``
   (tracing, lowering and XLA compilation of the solve's three programs: start, the iterations
   in one ``lax.while_loop``, finish); solve time = median over --repeats runs of them
   (``jax.block_until_ready``); they are compiled ahead of time, so there is no warm-up call. Also: the problem size (variables =
@@ -20,7 +20,7 @@ What is measured (wall clock):
   factorisations per iteration (its ``factorisations``: the inertia correction's attempts, a
   failed one counted up to its first indefinite block), the status, and
   ``jaxmm.analysis.validate`` of the trajectory (its table is printed after the main table).
-  The default solver tolerance is 1e-6 on the violation (``optimise.DEFAULT_OPTIONS``).
+  The default solver tolerance is 1e-6 on the violation (``solve.DEFAULT_OPTIONS``).
 * --ipopt: ``solve_ipopt(task, urdf, guess, tol=1e-4)`` (the paper's tolerance, physical units;
   exact Hessian, MUMPS) on the same robot, read from ``jaxmm.assemble_urdf`` written to a
   temporary file; one call (no repeats): build time (``ReferenceNLP`` construction, ADAM
@@ -74,7 +74,7 @@ import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
 from machine import format_time, log, machine_lines, render, timed  # noqa: E402
-from jaxmm import analysis, io, optimise, tasks  # noqa: E402
+from jaxmm import analysis, io, programs, solve, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 from jaxmm.transcription import nlp as transcription  # noqa: E402
 from jaxmm import stagewise  # noqa: E402
@@ -114,13 +114,13 @@ def solve_ours(task, guess, options, repeats, coarse=None):
     resampled (``variables.resample``) as the guess of the task's solve; compile time: both
     compilations; solve time: both solves and the resampling."""
     if coarse is None:
-        compiled, compile_time = timed(lambda: optimise.compile_solve(task, guess, options))
+        compiled, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
         run = lambda: (jax.block_until_ready(compiled()), None)  # noqa: E731
     else:
         coarse_task = tasks.with_intervals(task, coarse)
         (compiled_coarse, compiled), compile_time = timed(lambda: (
-            optimise.compile_solve(coarse_task, tasks.initial_guess(coarse_task), options),
-            optimise.compile_solve(task, guess, options)))  # fmt: skip
+            programs.compile_solve(coarse_task, tasks.initial_guess(coarse_task), options),
+            programs.compile_solve(task, guess, options)))  # fmt: skip
 
         def run():
             rough = jax.block_until_ready(compiled_coarse())
@@ -230,7 +230,7 @@ def failed_lines(rows):
 
 def knot_study(counts, budget, repeats):
     """One table row per N: compile, solve, iterations, per iteration, per iteration / N."""
-    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, max_iterations=budget)
+    options = dataclasses.replace(solve.DEFAULT_OPTIONS, max_iterations=budget)
     lines, first = [], None
     for knots in counts:
         task = tasks.scenario(KNOT_SCENARIO, knots=knots)
@@ -290,7 +290,7 @@ def main():
 
     run_scenarios = args.scenarios is not None or args.knots is None
     names = parse_names(parser, args.scenarios, default=list(tasks.SCENARIOS))
-    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, slack_start=args.slack_start)
+    options = dataclasses.replace(solve.DEFAULT_OPTIONS, slack_start=args.slack_start)
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     slack_names = names if args.ipopt_slacks == "all" else parse_names(parser, args.ipopt_slacks, default=[])

@@ -31,7 +31,7 @@ import optax  # noqa: E402
 
 import jaxmm  # noqa: E402, F401  (float64)
 from machine import machine_lines  # noqa: E402
-from jaxmm import optimise, tasks, tuning  # noqa: E402
+from jaxmm import solve, tasks, tuning  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 
 NAMES = ("com_vel", "final_thrust")
@@ -62,7 +62,7 @@ def main():
     published = {n: float(getattr(task.weights, n)) for n in NAMES}
     hidden = {n: published[n] * f for n, f in zip(NAMES, args.hidden)}
     start = time.perf_counter()
-    reference = optimise.solve_task(with_weights(task, hidden))
+    reference = solve.solve_task(with_weights(task, hidden))
     print(f"reference: hidden weights {hidden}, {reference.status.name}, {int(reference.solution.iterations)} iterations")
     if reference.status is not ip.Status.CONVERGED:
         sys.exit("the reference solve did not converge: nothing to recover")
@@ -78,7 +78,7 @@ def main():
         return (jnp.mean(((knots.com - com_ref) / com_scale) ** 2)
                 + jnp.mean(((knots.thrust - thrust_ref) / thrust_scale) ** 2))
 
-    first = optimise.solve_task(task)
+    first = solve.solve_task(task)
     result = tuning.tune_weights(task, loss, names=NAMES, optimizer=optax.adam(args.rate), steps=args.steps,
                                  warm_start=first)
     elapsed = time.perf_counter() - start

@@ -25,7 +25,6 @@ one compilation.
 """
 
 import dataclasses
-import functools
 from collections.abc import Sequence
 
 import jax
@@ -188,42 +187,6 @@ def published_guesses(tasks):
     return jax.vmap(initial_guess)(tasks)
 
 
-def _over(one, vectorised):
-    """one(task, x) over batched (tasks, xs): vmapped (``vectorised``: the instances advance
-    together, every kernel batched) or ``lax.map``ped (one instance after another, each running
-    only its own iterations, every kernel unbatched)."""
-    if vectorised:
-        return jax.vmap(one)
-    return lambda tasks, xs: jax.lax.map(lambda pair: one(*pair), (tasks, xs))
-
-
-def _instances(options, vectorised):
-    """The solve of a batch of (task, guess) instances (see ``_over``)."""
-    return _over(lambda task, guess: programs.solve_program(task, guess, options), vectorised)
-
-
-@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
-def _solve_batch(tasks, guesses, options, vectorised=True):
-    """``programs.solve_program`` over a batched task and its guesses (see ``_instances``)."""
-    return _instances(options, vectorised)(tasks, guesses)
-
-
-# The batch solve in slices, for stopping.run (a time budget, Ctrl-C).
-@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
-def _start_batch(tasks, guesses, options, vectorised):
-    return _over(lambda task, guess: programs.start(task, guess, options, None, None), vectorised)(tasks, guesses)
-
-
-@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
-def _advance_batch(tasks, states, options, vectorised, until):
-    return _over(lambda task, state: programs.advance(task, state, options, until), vectorised)(tasks, states)
-
-
-@functools.partial(jax.jit, static_argnames="vectorised")
-def _finish_batch(tasks, states, vectorised, stopped):
-    return _over(lambda task, state: programs.finish(task, state, stopped), vectorised)(tasks, states)
-
-
 def batch_mesh(devices=None):
     """A one-axis ``jax.sharding.Mesh`` named "batch" over ``devices`` (default: every device
     ``jax.devices()`` sees: on several hosts, after ``jax.distributed.initialize()``, those of
@@ -234,19 +197,7 @@ def batch_mesh(devices=None):
     return jax.sharding.Mesh(np.asarray(devices), ("batch",))
 
 
-@functools.partial(jax.jit, static_argnames=("options", "mesh", "vectorised"))
-def _solve_sharded(tasks, guesses, options, mesh, vectorised):
-    """``_solve_batch`` with the instances split over the devices of ``mesh``: each device
-    solves its own B / D instances (``jax.shard_map``), its loops stopping when its own
-    instances stop. The instances are independent, so there is no collective at all (an
-    SPMD-partitioned vmap would all-reduce "any instance still running" on every trip of every
-    while loop: Newton, line search, inertia correction)."""
-    spec = jax.sharding.PartitionSpec("batch")
-    return jax.shard_map(_instances(options, vectorised), mesh=mesh, in_specs=(spec, spec), out_specs=spec,
-                         check_vma=False)(tasks, guesses)
-
-
-def _vectorised(vectorised, mesh):
+def default_vectorised(vectorised, mesh):
     """The default of ``vectorised``: True, but on a mesh of CPU devices. Several CPU devices of
     one process share one thread pool, and XLA's batched LAPACK kernels (Cholesky) wait in it
     for work they queue to it: with every pool thread running a device's program they wait
@@ -263,7 +214,7 @@ def _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible):
     stopping.check_budget(time_budget)
     if mesh is not None and (not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",)):
         raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
-    vectorised = _vectorised(vectorised, mesh)
+    vectorised = default_vectorised(vectorised, mesh)
     if mesh is not None:
         if time_budget is not None or interruptible:
             raise ValueError("a sharded batch is one call: it takes no time_budget and cannot be interrupted")
@@ -272,13 +223,14 @@ def _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible):
             raise ValueError(f"a batch of {size} does not split evenly over {devices} devices: give a multiple of "
                              f"{devices} instances (repeat a guess to pad)")
         split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-        return _solve_sharded(jax.device_put(tasks, split), jax.device_put(guesses, split), options, mesh, vectorised)
+        return programs.sharded_batch_solve(jax.device_put(tasks, split), jax.device_put(guesses, split), options, mesh,
+                                            vectorised)
     if time_budget is None and not interruptible:
-        return _solve_batch(tasks, guesses, options, vectorised)
+        return programs.batch_solve(tasks, guesses, options, vectorised)
     return stopping.run(
-        _start_batch(tasks, guesses, options, vectorised),
-        lambda states, until: _advance_batch(tasks, states, options, vectorised, until),
-        lambda states, stopped: _finish_batch(tasks, states, vectorised, stopped),
+        programs.batch_start(tasks, guesses, options, vectorised),
+        lambda states, until: programs.batch_advance(tasks, states, options, vectorised, until),
+        lambda states, stopped: programs.batch_finish(tasks, states, vectorised, stopped),
         options.max_iterations, time_budget=time_budget, interruptible=interruptible)
 
 
@@ -300,7 +252,7 @@ def solve_batch(tasks, guesses=None, options=programs.DEFAULT_OPTIONS, mesh=None
     number). vectorised: True, the instances (of each device) advance together in one vmapped
     solve (what accelerators are for); False, one after another in a ``lax.map`` (on a CPU as
     fast as separate solves, none waiting for the slowest); default True, False on a mesh of CPU
-    devices (see ``_vectorised``). time_budget [s], interruptible: as for ``solve.solve_task``,
+    devices (see ``default_vectorised``). time_budget [s], interruptible: as for ``solve.solve_task``,
     but off by default (the batch is then one XLA call); the instances still running when the
     batch stops get status ``TIME_LIMIT`` or ``INTERRUPTED``, the others keep theirs. Not with a
     mesh.

@@ -44,7 +44,7 @@ from jaxmm.transcription.variables import Knot, Trajectory
 FORMAT = "jaxmm-solution"
 VERSION = 4
 READABLE_VERSIONS = (1, 2, 3, 4)
-_HEADER = "__header__"
+HEADER = "__header__"
 _CLASSES = {cls.__name__: cls for cls in (Trajectory, Knot, ip.Solution, ip.Multipliers, TaskParams, Weights)}
 
 
@@ -161,7 +161,7 @@ def save(path, task, result):
         trajectory=_encode(result.trajectory, "trajectory", arrays),
         solution=_encode(result.solution, "solution", arrays),
     )
-    arrays[_HEADER] = np.array(json.dumps(header))
+    arrays[HEADER] = np.array(json.dumps(header))
     descriptor, temporary = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=".tmp")
     try:
         with os.fdopen(descriptor, "wb") as file:
@@ -184,10 +184,10 @@ def _open(path):
             arrays = {key: data[key] for key in data.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as error:
         raise SolutionFileError(f"{path!r} is not a readable .npz solution file ({error})") from None
-    if _HEADER not in arrays:
+    if HEADER not in arrays:
         raise SolutionFileError(f"{path!r} has no jaxmm header: not a jaxmm solution file")
     try:
-        header = json.loads(str(arrays.pop(_HEADER)))
+        header = json.loads(str(arrays.pop(HEADER)))
     except json.JSONDecodeError as error:
         raise SolutionFileError(f"{path!r}: corrupt header ({error})") from None
     if header.get("format") != FORMAT:

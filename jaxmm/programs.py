@@ -6,12 +6,15 @@ after the other (or in slices, by ``solver.stopping.run``), every solve of a pro
 (robot, knot count, integration rule, options) shares the one heavy program, ``advance``,
 whatever its start (cold, warm, another scaling), its numbers (targets, weights, bounds), its
 time budget or its interrupts. ``solve_program`` is the whole solve as one traceable function
-(what ``batch`` vmaps); ``compile_solve`` compiles the three programs ahead of time;
+(what ``batch`` vmaps or maps, in ``batch_solve`` and its slices ``batch_start``,
+``batch_advance``, ``batch_finish``, and splits over devices in ``sharded_batch_solve``);
+``compile_solve`` compiles the three programs ahead of time;
 ``differentiable_solve`` and ``adjoint`` are the implicitly differentiated solve and the adjoint
 solve at a found optimum (``solver.sensitivity``).
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -186,3 +189,54 @@ def adjoint(task, solution, cotangent):
     problem, pull_task = jax.vjp(transcription.stagewise_nlp, task)
     nlp_bar, diagnostics = sensitivity.vjp(problem, solution, *cotangent)
     return pull_task(nlp_bar)[0], diagnostics
+
+
+# ------------------------------------------------------------------------------ batches
+
+
+def over(one, vectorised):
+    """one(task, x) over batched (tasks, xs): vmapped (``vectorised``: the instances advance
+    together, every kernel batched) or ``lax.map``ped (one instance after another, each running
+    only its own iterations, every kernel unbatched)."""
+    if vectorised:
+        return jax.vmap(one)
+    return lambda tasks, xs: jax.lax.map(lambda pair: one(*pair), (tasks, xs))
+
+
+def instances(options, vectorised):
+    """The solve of a batch of (task, guess) instances (see ``over``)."""
+    return over(lambda task, guess: solve_program(task, guess, options), vectorised)
+
+
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
+def batch_solve(tasks, guesses, options, vectorised=True):
+    """``solve_program`` over a batched task and its guesses (see ``instances``)."""
+    return instances(options, vectorised)(tasks, guesses)
+
+
+# The batch solve in slices, for stopping.run (a time budget, Ctrl-C).
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
+def batch_start(tasks, guesses, options, vectorised):
+    return over(lambda task, guess: start(task, guess, options, None, None), vectorised)(tasks, guesses)
+
+
+@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
+def batch_advance(tasks, states, options, vectorised, until):
+    return over(lambda task, state: advance(task, state, options, until), vectorised)(tasks, states)
+
+
+@functools.partial(jax.jit, static_argnames="vectorised")
+def batch_finish(tasks, states, vectorised, stopped):
+    return over(lambda task, state: finish(task, state, stopped), vectorised)(tasks, states)
+
+
+@functools.partial(jax.jit, static_argnames=("options", "mesh", "vectorised"))
+def sharded_batch_solve(tasks, guesses, options, mesh, vectorised):
+    """``batch_solve`` with the instances split over the devices of ``mesh``: each device
+    solves its own B / D instances (``jax.shard_map``), its loops stopping when its own
+    instances stop. The instances are independent, so there is no collective at all (an
+    SPMD-partitioned vmap would all-reduce "any instance still running" on every trip of every
+    while loop: Newton, line search, inertia correction)."""
+    spec = jax.sharding.PartitionSpec("batch")
+    return jax.shard_map(instances(options, vectorised), mesh=mesh, in_specs=(spec, spec), out_specs=spec,
+                         check_vma=False)(tasks, guesses)

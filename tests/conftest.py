@@ -176,7 +176,7 @@ def solved_take_off():
     """The reduced take-off (14 knots of 0.25–0.5 s: the published 3.5–7 s horizon) and its
     ``solve_task`` from the published guess, shared by the files that need a solved task."""
     from jaxmm import tasks
-    from jaxmm.optimise import solve_task
+    from jaxmm.solve import solve_task
 
     task = tasks.scenario("take_off", **REDUCED_TAKE_OFF)
     return task, solve_task(task)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxmm
-from jaxmm import batch, io, optimise, tasks
+from jaxmm import batch, io, programs, solve, tasks
 from jaxmm.cli import main
 
 LINK = ('<link name="{name}"><inertial><mass value="{mass}"/><inertia ixx="{i}" iyy="{i}" izz="{i}" ixy="0" '
@@ -236,24 +236,24 @@ def _guess(**changes):
 
 
 SOLVE_CASES = {
-    "task is not a Task": (lambda: optimise.solve_task("take_off"), TypeError, "task must be a Task"),
-    "guess is not a Trajectory": (lambda: optimise.solve_task(take_off(), guess=np.zeros(10)), TypeError,
+    "task is not a Task": (lambda: solve.solve_task("take_off"), TypeError, "task must be a Task"),
+    "guess is not a Trajectory": (lambda: solve.solve_task(take_off(), guess=np.zeros(10)), TypeError,
                                   "guess must be a Trajectory"),
-    "guess with too few knots": (lambda: optimise.solve_task(take_off(), guess=tasks.initial_guess(_take_off(
+    "guess with too few knots": (lambda: solve.solve_task(take_off(), guess=tasks.initial_guess(_take_off(
         knots=10))), ValueError, r"has shape \(11, 3\); the task \(15 knots\) needs \(15, 3\)"),
-    "NaN in the guess": (lambda: optimise.solve_task(take_off(), guess=_guess(thrust=lambda t: t.at[3, 1].set(
+    "NaN in the guess": (lambda: solve.solve_task(take_off(), guess=_guess(thrust=lambda t: t.at[3, 1].set(
         np.nan))), ValueError, r"guess.*thrust has non-finite entries"),
-    "infinite total time": (lambda: optimise.solve_task(take_off(), guess=dataclasses.replace(
+    "infinite total time": (lambda: solve.solve_task(take_off(), guess=dataclasses.replace(
         tasks.initial_guess(take_off()), total_time=jnp.inf)), ValueError, "total_time has non-finite entries"),
-    "complex guess": (lambda: optimise.solve_task(take_off(), guess=_guess(com=lambda c: c.astype(complex))),
+    "complex guess": (lambda: solve.solve_task(take_off(), guess=_guess(com=lambda c: c.astype(complex))),
                       TypeError, "dtype complex128"),
-    "warm start is not a solution": (lambda: optimise.solve_task(take_off(), warm_start=tasks.initial_guess(
+    "warm start is not a solution": (lambda: solve.solve_task(take_off(), warm_start=tasks.initial_guess(
         take_off())), TypeError, "warm_start must be a TaskSolution"),
-    "options of the wrong kind": (lambda: optimise.solve_task(take_off(), options={"max_iterations": 3}), TypeError,
+    "options of the wrong kind": (lambda: solve.solve_task(take_off(), options={"max_iterations": 3}), TypeError,
                                   "options must be interior_point.Options"),
-    "time budget of zero": (lambda: optimise.solve_task(take_off(), time_budget=0), ValueError,
+    "time budget of zero": (lambda: solve.solve_task(take_off(), time_budget=0), ValueError,
                             "time_budget must be a positive number of seconds, got 0"),
-    "time budget that is not a number": (lambda: optimise.compile_solve(take_off(), time_budget="60"), ValueError,
+    "time budget that is not a number": (lambda: programs.compile_solve(take_off(), time_budget="60"), ValueError,
                                          "time_budget must be a positive number of seconds, got '60'"),
     "batch of guesses with one scalar time": (lambda: batch.solve_batch(take_off(), tasks.initial_guess(take_off())),
                                               ValueError, "must have a leading batch axis"),
@@ -264,7 +264,7 @@ SOLVE_CASES = {
         contact_points=lambda p: p.at[0, 0, 0].set(np.inf))]), ValueError, r"guesses.*contact_points has non-finite"),
     "batch of tasks of two knot counts": (lambda: batch.stack_tasks([take_off(), _take_off(knots=10)]), ValueError,
                                           "task 1 cannot be batched with task 0.*n_intervals: 14 vs 10"),
-    "batch with a guess per task missing": (lambda: batch.solve_batch_tasks(
+    "batch with a guess per task missing": (lambda: batch.solve_batch(
         [take_off(), take_off()], batch.stack_trajectories([tasks.initial_guess(take_off())] * 3)), ValueError,
         "3 guesses for a batch of 2 tasks"),
     "negative number of sampled guesses": (lambda: batch.sample_guesses(take_off(), jax.random.key(0), -1),
@@ -284,7 +284,7 @@ def test_bad_solve_input(call, error, message):
 
 def _unsolved():
     """A TaskSolution-shaped value built without solving (the published guess as the answer)."""
-    return optimise.TaskSolution(tasks.initial_guess(take_off()), None, {})
+    return solve.TaskSolution(tasks.initial_guess(take_off()), None, {})
 
 
 def _write(path, content):
@@ -304,7 +304,7 @@ FILE_CASES = {
                          "not a readable .npz solution file"),
     "load an npz without a header": (lambda d: io.load(_savez(d / "h.npz", x=np.zeros(3))), io.SolutionFileError,
                                      "no jaxmm header"),
-    "load a header that is not JSON": (lambda d: io.load(_savez(d / "j.npz", **{io._HEADER: np.array("{")})),
+    "load a header that is not JSON": (lambda d: io.load(_savez(d / "j.npz", **{io.HEADER: np.array("{")})),
                                        io.SolutionFileError, "corrupt header"),
 }
 

@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 import jaxmm
-from jaxmm import analysis, batch, optimise, tasks
+from jaxmm import analysis, batch, programs, solve, tasks
 from jaxmm.solver import interior_point as ip
 from jaxmm.transcription.constraints import variable_bounds
 
@@ -73,7 +73,7 @@ def problems(task):
 
 @pytest.fixture(scope="module")
 def solved(problems):
-    return batch.solve_batch_tasks(*problems)
+    return batch.solve_batch(*problems)
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def singles(problems):
     """The instances solved one by one (``instance`` of a stacked task has the task's own leaf
     types, so this is the compiled solve of ``solve_task(task)``)."""
     stacked, guesses = problems
-    return [optimise.solve_task(batch.instance(stacked, i), batch.instance(guesses, i))
+    return [solve.solve_task(batch.instance(stacked, i), batch.instance(guesses, i))
             for i in range(batch.batch_size(guesses))]
 
 
@@ -106,7 +106,7 @@ def test_the_batch_equals_a_loop_of_single_solves(solved, singles):
     for i in (0, 1):
         mine, single = batch.instance(solved, i), singles[i]
         assert float(mine.solution.objective) == pytest.approx(float(single.solution.objective), rel=SAME_ANSWER)
-        assert float(mine.solution.violation) <= optimise.DEFAULT_OPTIONS.tolerance
+        assert float(mine.solution.violation) <= solve.DEFAULT_OPTIONS.tolerance
     assert float(solved.solution.violation[2]) > 0.05  # far from feasible (test_solve_task: the restoration's 0.42)
 
 
@@ -133,20 +133,20 @@ def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, probl
     """solve_batch broadcasts its task: a batch of three guesses runs the executable compiled
     for ``solved``. A guess with a NaN is refused at the boundary, naming it; below the
     boundary (the compiled solve itself) it stops at once with status NAN, as a single solve does."""
-    compiled = batch._solve_batch._cache_size()
+    compiled = programs.batch_solve._cache_size()
     guess = _with_nan(batch.instance(problems[1], 0))
     good = batch.instance(problems[1], 0)
     with pytest.raises(ValueError, match=r"joint_positions has non-finite entries .* in instances \[1, 2\]"):
         batch.solve_batch(task, [good, guess, guess])
     stacked = batch.stack_trajectories([guess, guess, guess])
     # called as solve_batch calls it: jit keys a static argument left at its default apart from one passed
-    result = batch._solve_batch(batch.broadcast_task(task, 3), stacked, optimise.DEFAULT_OPTIONS, True)
-    assert batch._solve_batch._cache_size() == compiled
+    result = programs.batch_solve(batch.broadcast_task(task, 3), stacked, solve.DEFAULT_OPTIONS, True)
+    assert programs.batch_solve._cache_size() == compiled
     assert [ip.Status(int(s)) for s in result.solution.status] == [ip.Status.NAN] * 3
     np.testing.assert_array_equal(np.asarray(result.solution.iterations), 1)
-    options = optimise.DEFAULT_OPTIONS  # the solve_task's three programs, below its boundary check
-    state = optimise._start(task, guess, options, None, None)
-    single = optimise._finish(task, optimise._advance(task, state, options, options.max_iterations), int(ip.Status.MAX_ITERATIONS))
+    options = solve.DEFAULT_OPTIONS  # the solve_task's three programs, below its boundary check
+    state = programs.start(task, guess, options, None, None)
+    single = programs.finish(task, programs.advance(task, state, options, options.max_iterations), int(ip.Status.MAX_ITERATIONS))
     assert single.status is ip.Status.NAN and int(single.solution.iterations) == 1
 
 
@@ -156,7 +156,7 @@ def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, probl
 def test_a_time_budget_stops_the_batch_on_its_path(problems, solved, vectorised):
     """A budget of 1 ms: every instance stops after two iterations (the first slice, then one)
     with status TIME_LIMIT and the first two history rows of the batch that ran to the end."""
-    stopped = batch.solve_batch_tasks(*problems, time_budget=1e-3, vectorised=vectorised)
+    stopped = batch.solve_batch(*problems, time_budget=1e-3, vectorised=vectorised)
     assert [ip.Status(int(s)) for s in stopped.solution.status] == [ip.Status.TIME_LIMIT] * 3
     np.testing.assert_array_equal(np.asarray(stopped.solution.iterations), 2)
     np.testing.assert_allclose(np.asarray(stopped.solution.history)[:, :2],
@@ -165,7 +165,7 @@ def test_a_time_budget_stops_the_batch_on_its_path(problems, solved, vectorised)
 
 
 def test_a_broadcast_task_has_the_leaf_types_of_stacked_tasks(task):
-    """So that solve_batch (one task, broadcast) and solve_batch_tasks share one compiled solve:
+    """So that solve_batch (one task, broadcast) and solve_batch share one compiled solve:
     a weakly typed leaf (a float given in Python) would make jit compile another."""
     other = tasks.scenario("take_off", **{**REDUCED_TAKE_OFF, "final_com": (0.0, 0.0, 0.78)})
     assert jax.tree.map(jax.typeof, batch.broadcast_task(task, 2)) == jax.tree.map(
@@ -325,7 +325,7 @@ def test_mismatched_batches_are_rejected_before_compiling(task, problems):
     with pytest.raises(ValueError, match="guess 1 cannot be batched with guess 0: guess.knots.com has shape"):
         batch.solve_batch(task, [one, batch.instance(small, 0)])
     with pytest.raises(ValueError, match="3 guesses for a batch of 2 tasks"):
-        batch.solve_batch_tasks([task, task], guesses)
+        batch.solve_batch([task, task], guesses)
     with pytest.raises(ValueError, match="time_budget must be a positive number of seconds, got -1"):
         batch.solve_batch(task, guesses, time_budget=-1)
     with pytest.raises(ValueError, match="a sharded batch is one call: it takes no time_budget"):
@@ -333,7 +333,7 @@ def test_mismatched_batches_are_rejected_before_compiling(task, problems):
     with pytest.raises(ValueError, match="task is batched"):
         batch.solve_batch(batch.stack_tasks([task, task]), guesses)
     with pytest.raises(ValueError, match=r"is a scalar: not batched"):
-        batch.solve_batch_tasks(task, guesses)
+        batch.solve_batch(task, guesses)
     with pytest.raises(TypeError, match="guesses must be a batched Trajectory or a list of Trajectories"):
         batch.solve_batch(task, {"total_time": jnp.ones(3)})
     ragged = dataclasses.replace(guesses, total_time=jnp.ones(2))

@@ -86,9 +86,9 @@ def test_compare_prints_both_solvers_side_by_side(solved_take_off, capsys, monke
     """The comparison's plumbing: our side is the solved take-off (test_solve_task cross-checks
     the two optima), IPOPT runs for real from the same guess, stopped after 3 iterations."""
     pytest.importorskip("casadi", reason="the IPOPT reference needs the reference extra")
-    from jaxmm import optimise
+    from jaxmm import programs
 
-    monkeypatch.setattr(optimise, "compile_solve", lambda task, **kwargs: lambda: solved_take_off[1])
+    monkeypatch.setattr(programs, "compile_solve", lambda task, **kwargs: lambda: solved_take_off[1])
     assert main(["compare", "take-off", "--knots", "14", "--max-iterations", "3", "--quiet"]) == 0
     out = capsys.readouterr().out
     assert re.search(r"status\s+CONVERGED\s+Maximum_Iterations_Exceeded", out), out
@@ -146,7 +146,7 @@ def test_knots_below_two_is_a_usage_error(capsys):
 def test_an_unconverged_solve_is_written_and_reported_with_exit_1(solved_take_off, tmp_path, capsys, monkeypatch):
     """The outputs of a solve that stopped early and fails validate: written all the same, the
     failure named in the summary, exit status 1."""
-    from jaxmm import optimise
+    from jaxmm import programs
     from jaxmm.solver import interior_point as ip
 
     _, result = solved_take_off
@@ -156,7 +156,7 @@ def test_an_unconverged_solve_is_written_and_reported_with_exit_1(solved_take_of
         trajectory=dataclasses.replace(result.trajectory, knots=dataclasses.replace(knots, com=knots.com + 0.05)),
         solution=dataclasses.replace(result.solution, status=jax.numpy.asarray(int(ip.Status.MAX_ITERATIONS))),
     )
-    monkeypatch.setattr(optimise, "compile_solve", lambda task, **kwargs: lambda: stopped)
+    monkeypatch.setattr(programs, "compile_solve", lambda task, **kwargs: lambda: stopped)
     out = tmp_path / "run"
     assert main(["solve", "take-off", "--knots", "14", "--out", str(out), "--quiet", "--no-figures"]) == 1
     printed = capsys.readouterr().out

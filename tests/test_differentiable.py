@@ -16,7 +16,7 @@ import optax
 import pytest
 
 from jaxmm import analysis, solve, tasks, tuning
-from jaxmm.optimise import solve_task
+from jaxmm.solve import solve_task
 from jaxmm.solver import interior_point as ip
 
 from conftest import REDUCED_TAKE_OFF
@@ -76,7 +76,7 @@ def test_the_take_off_gradient_matches_central_differences_of_re_solves(polished
     Tightening the solver's stationarity instead made it worse (20-iteration re-solves, adjoint
     residual 3e-8)."""
     task, result = polished
-    value, task_bar, diagnostics = differentiable.gradient(task, result, impulse)
+    value, task_bar, diagnostics = solve.gradient(task, result, impulse)
     assert bool(diagnostics.reliable()) and float(diagnostics.residual) <= 1e-10, diagnostics
     assert float(value) == pytest.approx(float(impulse(task, result.trajectory)), rel=1e-14)
     with_value, cotangent, parameter, step = CASES[name]

@@ -1,4 +1,4 @@
-"""``benchmarks/floor.py``'s random Newton-matrix structure: symmetric positive definite,
+"""``tools/floor.py``'s random Newton-matrix structure: symmetric positive definite,
 coupled only in the columns it names, and factored and solved by ``linalg`` as a dense solve
 does; its FLOP count adds up the two chains' kernels."""
 
@@ -12,9 +12,9 @@ import numpy as np
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import linalg
 
-BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))  # floor.py's neighbour machine.py
-spec = importlib.util.spec_from_file_location("floor", BENCHMARKS / "floor.py")
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # floor.py imports benchmarks/machine.py
+spec = importlib.util.spec_from_file_location("floor", ROOT / "tools" / "floor.py")
 floor = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(floor)
 

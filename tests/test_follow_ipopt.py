@@ -1,12 +1,12 @@
-"""``benchmarks/follow_ipopt.py``'s reader of IPOPT's iteration log."""
+"""``tools/follow_ipopt.py``'s reader of IPOPT's iteration log."""
 
 import importlib.util
 import pathlib
 import sys
 
-BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))  # follow_ipopt.py's neighbour machine.py
-spec = importlib.util.spec_from_file_location("follow_ipopt", BENCHMARKS / "follow_ipopt.py")
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # follow_ipopt.py imports benchmarks/machine.py
+spec = importlib.util.spec_from_file_location("follow_ipopt", ROOT / "tools" / "follow_ipopt.py")
 follow_ipopt = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(follow_ipopt)
 

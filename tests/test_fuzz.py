@@ -25,7 +25,7 @@ import jaxmm
 from jaxmm.solver import interior_point as ip
 
 from conftest import PinocchioTwin
-from test_solver import CAPPED, K, _integrator
+from test_solver import CAPPED, K, integrator
 
 pytest.importorskip("pinocchio", reason="the rigid-body fuzzing compares with Pinocchio: pip install pin")
 
@@ -127,7 +127,7 @@ def test_random_small_problems_stop_with_a_meaningful_status(record_property):
     @given(problem=small_problems())
     def check(problem):
         a, start, u_max, cap, scale, poison, seed = problem
-        nlp = _integrator(CAPPED, a=a, start=start, u_max=u_max, energy_cap=cap)
+        nlp = integrator(CAPPED, a=a, start=start, u_max=u_max, energy_cap=cap)
         Z0 = scale * np.random.default_rng(seed).normal(size=(K, 3))
         if poison is not None:
             Z0[K // 2, 1] = poison
@@ -156,7 +156,7 @@ def test_the_same_inputs_give_bit_identical_outputs():
     """Solving the same problem twice (same machine, same compiled program) gives the same bits
     in every output, history and multipliers included: nothing in the solve depends on timing
     or thread scheduling."""
-    nlp = _integrator(CAPPED, a=3.0, start=2.0, u_max=5.0, energy_cap=4.0)
+    nlp = integrator(CAPPED, a=3.0, start=2.0, u_max=5.0, energy_cap=4.0)
     Z0 = jnp.asarray(np.random.default_rng(5).normal(size=(K, 3)))
     first, second = (solve(nlp, Z0, jnp.zeros(1), FUZZ_OPTIONS) for _ in range(2))
     assert ip.Status(int(first.status)) is ip.Status.CONVERGED

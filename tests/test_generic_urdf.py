@@ -87,3 +87,74 @@ def test_against_pinocchio(tree):
         assert np.abs(pin.computeCentroidalMap(twin.model, twin.data, q_pin) @ v_pin - h[i]).max() <= 1e-10
         J = pin.computeFrameJacobian(twin.model, twin.data, q_pin, twin.frame_id("tip"), pin.LOCAL_WORLD_ALIGNED)
         assert np.abs(J @ v_pin - tip_jacobian[i] @ nu).max() <= 1e-10
+
+
+# A small legged robot that is not an iCub: a trunk and two legs, with feet but no sole corners
+# and no jets in its URDF.
+WALKER = (
+    '<robot name="walker">'
+    + _link("pelvis", 8.0, "0 0 0.05", "0 0 0")
+    + _link("left_leg", 2.0, "0 0 -0.2", "0 0 0")
+    + _link("right_leg", 2.0, "0 0 -0.2", "0 0 0")
+    + _link("left_foot", 0.5, "0.03 0 -0.02", "0 0 0")
+    + _link("right_foot", 0.5, "0.03 0 -0.02", "0 0 0")
+    + _link("camera", 0.3, "0 0 0", "0 0 0")
+    + _joint("left_hip", "revolute", "pelvis", "left_leg", "0 0.1 0", "0 0 0", axis="0 1 0")
+    + _joint("right_hip", "revolute", "pelvis", "right_leg", "0 -0.1 0", "0 0 0", axis="0 1 0")
+    + _joint("left_knee", "revolute", "left_leg", "left_foot", "0 0 -0.4", "0 0 0", axis="0 1 0")
+    + _joint("right_knee", "revolute", "right_leg", "right_foot", "0 0 -0.4", "0 0 0", axis="0 1 0")
+    + _joint("neck", "revolute", "pelvis", "camera", "0 0 0.3", "0 0 0", axis="0 0 1")
+    + "</robot>"
+)
+CORNERS = [(f"{side}_corner_{i}", f"{side}_foot", (x, y, -0.05), (0.0, 0.0, 0.0))
+           for side in ("left", "right") for i, (x, y) in enumerate([(0.1, 0.04), (0.1, -0.04), (-0.05, 0.04),
+                                                                    (-0.05, -0.04)])]
+JET = jaxmm.Frame("back_jet", "pelvis", xyz=(-0.1, 0.0, 0.1), rpy=(0.0, 0.3, 0.0), mass=1.5,
+                  com_xyz=(0.0, 0.0, -0.05), inertia=(0.01, 0.0, 0.0, 0.01, 0.0, 0.005))
+
+
+def test_frames_and_removed_subtrees_without_editing_the_urdf():
+    """``load_robot`` adds sole corners and a jet (with its mass) to a URDF that has neither and
+    drops a subtree; each frame sits where its parent's pose and its origin put it."""
+    plain = jaxmm.load_robot(WALKER)
+    robot = jaxmm.load_robot(WALKER, frames=[*CORNERS, JET], remove_subtrees=["camera"],
+                             jet_frames=["back_jet"], contact_frames=[c[0] for c in CORNERS])
+    model = robot.model
+    assert "camera" not in model.frame_names and "neck" not in model.joint_names
+    assert model.joint_names == ("left_hip", "right_hip", "left_knee", "right_knee")
+    assert float(jaxmm.total_mass(model)) == pytest.approx(float(jaxmm.total_mass(plain.model)) - 0.3 + 1.5, abs=1e-12)
+    quaternion = np.array([0.05, 0.02, 0.1, 0.99])
+    q = jaxmm.make_configuration([0.1, -0.2, 0.9], quaternion / np.linalg.norm(quaternion), [0.3, -0.2, 0.5, 0.1])
+    positions, rotations = jaxmm.frame_poses(model, q)
+    for name, parent, xyz, _ in CORNERS:
+        p_parent, R_parent = (a[model.frame_index(parent)] for a in (positions, rotations))
+        assert np.abs(positions[model.frame_index(name)] - (p_parent + R_parent @ np.asarray(xyz))).max() <= 1e-12
+        assert np.abs(rotations[model.frame_index(name)] - R_parent).max() <= 1e-12
+    p_jet, R_jet = jaxmm.frame_pose(model, q, "back_jet")
+    R_y = np.array([[np.cos(0.3), 0.0, np.sin(0.3)], [0.0, 1.0, 0.0], [-np.sin(0.3), 0.0, np.cos(0.3)]])
+    R_pelvis = rotations[model.frame_index("pelvis")]
+    assert np.abs(R_jet - R_pelvis @ R_y).max() <= 1e-12
+    assert "walker" == robot.name and robot.jet_frames == ("back_jet",)
+
+
+def test_frames_that_do_not_fit_are_named():
+    with pytest.raises(jaxmm.URDFError, match="parent link 'tail' is not in walker"):
+        jaxmm.load_robot(WALKER, frames=[("tail_tip", "tail")])
+    with pytest.raises(jaxmm.URDFError, match="already has a link or joint"):
+        jaxmm.load_robot(WALKER, frames=[("left_foot", "pelvis")])
+    with pytest.raises(jaxmm.URDFError, match="cannot remove unknown link 'arm'"):
+        jaxmm.load_robot(WALKER, remove_subtrees=["arm"])
+    with pytest.raises(TypeError, match="a frame is a Frame"):
+        jaxmm.load_robot(WALKER, frames=["left_corner"])
+
+
+def test_a_description_assembles_any_base_urdf(tmp_path):
+    """The description format that assembles iRonCub takes any URDF file as its base."""
+    path = tmp_path / "walker.urdf"
+    path.write_text(WALKER)
+    description = dict(name="jet_walker", base=dict(urdf=str(path), remove_subtrees=["camera"]),
+                       frames=[dict(name=c[0], parent=c[1], xyz=c[2]) for c in CORNERS])
+    urdf = jaxmm.assemble_urdf(description)
+    model = jaxmm.load_robot(urdf).model
+    assert model.name == "jet_walker" and "camera" not in model.frame_names
+    assert {c[0] for c in CORNERS} <= set(model.frame_names)

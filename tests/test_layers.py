@@ -75,15 +75,24 @@ def test_the_reader_sees_an_upward_import(tmp_path):
     assert imported_modules(source) == {"jaxmm.transcription", "jaxmm.tasks", "jaxmm", "jaxmm.robots.meshes"}
 
 
+ROOT = PACKAGE.parent
+
+
 def test_no_private_name_is_used_outside_its_module():
-    """``from m import _x`` and ``m._x`` for a jaxmm module ``m`` appear nowhere in the package."""
-    for path in PACKAGE.rglob("*.py"):
+    """``from m import _x`` and ``m._x`` for a jaxmm module ``m`` appear nowhere in the package,
+    its tests, benchmarks or tools."""
+    found = []
+    for path in [*PACKAGE.rglob("*.py"), *(ROOT / "tests").glob("*.py"), *(ROOT / "benchmarks").glob("*.py"),
+                 *(ROOT / "tools").glob("*.py")]:
         tree = ast.parse(path.read_text())
         aliases = {alias.asname or alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
                    and (node.module or "").startswith("jaxmm") for alias in node.names}
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("jaxmm"):
                 assert not [a.name for a in node.names if a.name.startswith("_") and a.name != "__version__"], path
+            if isinstance(node, ast.ImportFrom) and node.module and not node.module.startswith("jaxmm"):
+                assert not [a.name for a in node.names if a.name.startswith("_")], path
             if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
                 if isinstance(node.value, ast.Name) and node.value.id in aliases:
-                    raise AssertionError(f"{path.relative_to(PACKAGE)}: {node.value.id}.{node.attr}")
+                    found.append(f"{path.relative_to(ROOT)}: {node.value.id}.{node.attr}")
+    assert not found, found

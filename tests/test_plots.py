@@ -19,7 +19,7 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from PIL import Image
 
 from jaxmm.analysis import animation, plots
-from jaxmm import assemble_urdf, optimise, tasks
+from jaxmm import assemble_urdf, solve, tasks
 from jaxmm.robots import meshes
 from jaxmm.robots import ironcub_description
 from jaxmm.solver import interior_point as ip
@@ -70,7 +70,7 @@ def result(trajectory):
     solution = types.SimpleNamespace(history=history, iterations=iterations, objective=5.1e6,
                                      status=int(ip.Status.CONVERGED))
     families = {"centroidal_dynamics": 2e-9, "com": 0.0, "friction_cone": 3e-7}
-    return optimise.TaskSolution(trajectory, solution, families)
+    return solve.TaskSolution(trajectory, solution, families)
 
 
 def _spans(ax):

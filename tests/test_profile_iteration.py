@@ -1,4 +1,4 @@
-"""``benchmarks/profile_iteration.py``'s attribution of profiled XLA operations to jaxmm
+"""``tools/profile_iteration.py``'s attribution of profiled XLA operations to jaxmm
 functions, on a small program whose operations come from known functions."""
 
 import importlib.util
@@ -12,9 +12,9 @@ import numpy as np
 
 from jaxmm.rigid_body import so3
 
-BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))  # profile_iteration.py's neighbour machine.py
-spec = importlib.util.spec_from_file_location("profile_iteration", BENCHMARKS / "profile_iteration.py")
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # profile_iteration.py imports benchmarks/machine.py
+spec = importlib.util.spec_from_file_location("profile_iteration", ROOT / "tools" / "profile_iteration.py")
 profile_iteration = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(profile_iteration)
 

@@ -106,18 +106,23 @@ def test_kinematics_derivatives_in_one_pass_equal_autodiff(model, configurations
     the plain kinematics); the kinematics are affine in the base position, whose tangents are left out."""
     from jaxmm.rigid_body import centroidal
 
-    indices = model.frame_indices(FRAMES)
+    indices = np.asarray(model.frame_indices(FRAMES), int)
+
+    def bundle(q):  # the same quantities from the public, separately differentiated functions
+        positions, rotations = jaxmm.frame_poses(model, q)
+        return dict(com=jaxmm.com_position(model, q), cmm=jaxmm.centroidal_momentum_matrix(model, q),
+                    frame_positions=positions[indices], frame_rotations=rotations[indices])
+
     rng = np.random.default_rng(6)
-    shapes = jax.eval_shape(lambda q: centroidal._bundle(model, q, indices), configurations[0])
+    shapes = jax.eval_shape(bundle, configurations[0])
     weights = jax.tree.map(lambda s: jnp.asarray(rng.normal(size=s.shape)), shapes)
 
     def weighted(q):
-        out = centroidal._bundle(model, q, indices)
+        out = bundle(q)
         return sum(jnp.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out)))
 
     fused = jax.jit(lambda q: centroidal.centroidal_kinematics_derivatives(model, q, FRAMES, weights))
-    plain = jax.jit(lambda q: (centroidal._bundle(model, q, indices),
-                               jax.jacfwd(lambda q: centroidal._bundle(model, q, indices))(q), jax.hessian(weighted)(q)))
+    plain = jax.jit(lambda q: (bundle(q), jax.jacfwd(bundle)(q), jax.hessian(weighted)(q)))
     for q in configurations[:3]:
         (kinematics, jacobian, curvature), (kinematics_ref, jacobian_ref, hessian) = fused(q), plain(q)
         for a, b in zip(jax.tree.leaves((kinematics, jacobian)), jax.tree.leaves((kinematics_ref, jacobian_ref))):

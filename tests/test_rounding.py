@@ -1,4 +1,4 @@
-"""``benchmarks/rounding.py``'s perturbed guesses: the guess's structure, every entry moved by a
+"""``tools/rounding.py``'s perturbed guesses: the guess's structure, every entry moved by a
 relative amount of the order of the scale (zeros and T_total kept), the same for the same seed."""
 
 import importlib.util
@@ -12,9 +12,9 @@ import pytest
 import jaxmm  # noqa: F401  (float64)
 from jaxmm import tasks
 
-BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))  # rounding.py's neighbour machine.py
-spec = importlib.util.spec_from_file_location("rounding", BENCHMARKS / "rounding.py")
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # rounding.py imports benchmarks/machine.py
+spec = importlib.util.spec_from_file_location("rounding", ROOT / "tools" / "rounding.py")
 rounding = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(rounding)
 
@@ -43,7 +43,7 @@ def test_perturbed_guess_is_a_relative_perturbation_of_the_given_scale():
 def test_solver_options_from_the_command_line():
     options = rounding.solver_options(["regularisation_decrease=0.01", " max_iterations = 50"])
     assert options.regularisation_decrease == 0.01 and options.max_iterations == 50
-    assert rounding.solver_options([]) == rounding.optimise.DEFAULT_OPTIONS
+    assert rounding.solver_options([]) == rounding.solve.DEFAULT_OPTIONS
 
 
 @pytest.mark.parametrize("assignment, message", [("no_such_option=1", "no_such_option"), ("max_iterations", "name=value"),

@@ -4,7 +4,7 @@ must be set before JAX starts, hence a subprocess): the sharded batch gives the 
 unsharded one (a weight sweep from sampled guesses: multi-start runs the same program) up to
 rounding, bit-identical from run to run, its answer split over both devices; a batch that does
 not split evenly is refused. On CPU devices each device runs its instances one after another
-(``vectorised=False``, see ``batch._vectorised``: batched LAPACK kernels hang there), so the
+(``vectorised=False``, see ``batch.default_vectorised``: batched LAPACK kernels hang there), so the
 reference is the unsharded batch run the same way.
 
 Not bit-identical to it: XLA compiles the per-device program of ``shard_map`` differently from
@@ -27,11 +27,11 @@ SCRIPT = textwrap.dedent("""
     import dataclasses, json
     import jax
     import numpy as np
-    from jaxmm import batch, optimise, tasks
+    from jaxmm import batch, solve, tasks
 
     assert len(jax.devices()) == 2, jax.devices()
     task = tasks.scenario("take_off", knots=3)
-    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, max_iterations=15)
+    options = dataclasses.replace(solve.DEFAULT_OPTIONS, max_iterations=15)
     mesh = batch.batch_mesh()
 
     def same(a, b):
@@ -43,9 +43,9 @@ SCRIPT = textwrap.dedent("""
     guesses = batch.sample_guesses(task, jax.random.key(0), 4)
     sweep = [dataclasses.replace(task, weights=dataclasses.replace(task.weights, thrust=task.weights.thrust * f))
              for f in (0.5, 1.0, 2.0, 4.0)]
-    plain = batch.solve_batch_tasks(sweep, guesses, options, vectorised=False)
-    sharded = batch.solve_batch_tasks(sweep, guesses, options, mesh=mesh)
-    again = batch.solve_batch_tasks(sweep, guesses, options, mesh=mesh)
+    plain = batch.solve_batch(sweep, guesses, options, vectorised=False)
+    sharded = batch.solve_batch(sweep, guesses, options, mesh=mesh)
+    again = batch.solve_batch(sweep, guesses, options, mesh=mesh)
     objectives = [np.asarray(r.solution.objective) for r in (plain, sharded)]
     try:
         batch.solve_batch(task, batch.sample_guesses(task, jax.random.key(1), 3), options, mesh=mesh)

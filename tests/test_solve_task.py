@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 import jaxmm
-from jaxmm import analysis, optimise, tasks
-from jaxmm.optimise import solve_task
+from jaxmm import analysis, programs, solve, tasks
+from jaxmm.solve import solve_task
 from jaxmm.solver import interior_point as ip
 from jaxmm.transcription import nlp as transcription
 
@@ -60,7 +60,7 @@ def test_reduced_take_off_with_ipopt_slacks_reaches_the_same_optimum(take_off):
     run, the next test's compilation failed with LLVM's "Cannot allocate memory" (session 25: the
     worker's memory mappings, see ``conftest._free_compiled_programs``)."""
     task, default = take_off
-    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, ipopt_slacks=True)
+    options = dataclasses.replace(solve.DEFAULT_OPTIONS, ipopt_slacks=True)
     result = solve_task(task, options=options)
     assert result.status is ip.Status.CONVERGED, result.status.message
     assert analysis.validate(task, result.trajectory).ok
@@ -108,7 +108,7 @@ def _cross_check(task, result, tmp_path):
         # feasible: the two then differ in where the published guess leads, not in solving.
         # Ours may end STALLED there (feasible, no acceptable step), as IPOPT did: session 41,
         # 6.24501e5 against IPOPT's 6.24448e5 in 248 iterations.
-        again = solve_task(task, guess=trajectory, options=dataclasses.replace(optimise.DEFAULT_OPTIONS, **optimise.WARM_START))
+        again = solve_task(task, guess=trajectory, options=dataclasses.replace(solve.DEFAULT_OPTIONS, **solve.WARM_START))
         print(f"ours from IPOPT's end: {float(again.solution.objective):.8e} (violation "
               f"{float(again.solution.violation):.1e}, {int(again.solution.iterations)} iterations, {again.status.name})")
         assert again.status in (ip.Status.CONVERGED, ip.Status.STALLED), again.status.message
@@ -162,10 +162,10 @@ def test_warm_start_from_the_solution_of_a_neighbouring_task(take_off):
     take-off compiled."""
     _, cold = take_off
     neighbour = tasks.scenario("take_off", **REDUCED_TAKE_OFF, final_com=(0.0, 0.0, 0.78))
-    compiled = optimise._advance._cache_size()
+    compiled = programs.advance._cache_size()
     warm = solve_task(neighbour, warm_start=cold)
     reference = solve_task(neighbour)
-    assert optimise._advance._cache_size() == compiled, "the warm start compiled its own iterations"
+    assert programs.advance._cache_size() == compiled, "the warm start compiled its own iterations"
     assert warm.status is ip.Status.CONVERGED, warm.status.message
     assert reference.status is ip.Status.CONVERGED, reference.status.message
     assert int(warm.solution.iterations) < int(reference.solution.iterations) / 2

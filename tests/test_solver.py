@@ -46,7 +46,7 @@ INTEGRATOR = StagewiseFunctions(_knot_cost, _global_cost, _no_path, _dynamics, _
 CAPPED = StagewiseFunctions(_knot_cost, _global_cost, _no_path, _dynamics, _control_energy, _no_transition)
 
 
-def _integrator(functions=INTEGRATOR, a=2.0, start=1.0, u_max=np.inf, energy_cap=None):
+def integrator(functions=INTEGRATOR, a=2.0, start=1.0, u_max=np.inf, energy_cap=None):
     lower = jnp.full((K, 3), -jnp.inf).at[0, :2].set([start, 0.0]).at[:, 2].set(-u_max)
     upper = jnp.full((K, 3), jnp.inf).at[0, :2].set([start, 0.0]).at[:, 2].set(u_max)
     path_bounds = (EMPTY, EMPTY) if energy_cap is None else (jnp.array([-jnp.inf]), jnp.array([energy_cap]))
@@ -82,7 +82,7 @@ solve = jax.jit(ip.solve, static_argnames="options")
 
 
 def test_equality_constrained_qp_matches_dense_kkt():
-    solution = solve(_integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    solution = solve(integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
     assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
     found = np.concatenate([np.asarray(solution.Z).reshape(-1), solution.theta])
     assert np.abs(found - _dense_kkt_solution()).max() <= 1e-7
@@ -93,7 +93,7 @@ def test_equality_constrained_qp_matches_dense_kkt():
 def test_bounds_are_kept_and_active_at_the_solution():
     unbounded = _dense_kkt_solution().reshape(-1)[:-1].reshape(K, 3)
     u_max = 0.5 * np.abs(unbounded[:, 2]).max()
-    solution = solve(_integrator(u_max=u_max), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    solution = solve(integrator(u_max=u_max), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
     assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
     u = np.asarray(solution.Z[:, 2])
     assert np.all(np.abs(u) <= u_max + 1e-15)  # iterates stay in the box exactly
@@ -106,7 +106,7 @@ def test_the_barrier_parameter_stops_at_ipopts_floor(stationarity):
     a barrier problem solved there meets the stationarity tolerance), and the solve converges."""
     unbounded = _dense_kkt_solution().reshape(-1)[:-1].reshape(K, 3)
     options = dataclasses.replace(OPTIONS, stationarity=stationarity)
-    solution = solve(_integrator(u_max=0.5 * np.abs(unbounded[:, 2]).max()), jnp.zeros((K, 3)), jnp.zeros(1),
+    solution = solve(integrator(u_max=0.5 * np.abs(unbounded[:, 2]).max()), jnp.zeros((K, 3)), jnp.zeros(1),
                      options=options)
     assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
     barrier = np.asarray(solution.history)[: int(solution.iterations), ip.HISTORY_COLUMNS.index("barrier")]
@@ -119,8 +119,8 @@ def test_the_barrier_parameter_stops_at_ipopts_floor(stationarity):
 def test_nonlinear_inequality_matches_the_equivalent_box():
     """u² ≤ c as a path inequality gives the same optimum as the box |u| ≤ √c."""
     cap = 0.01
-    boxed = solve(_integrator(u_max=np.sqrt(cap)), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
-    inequality = solve(_integrator(CAPPED, energy_cap=cap), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    boxed = solve(integrator(u_max=np.sqrt(cap)), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    inequality = solve(integrator(CAPPED, energy_cap=cap), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
     assert ip.Status(int(inequality.status)) is ip.Status.CONVERGED
     assert np.abs(np.asarray(inequality.Z) - np.asarray(boxed.Z)).max() <= 1e-6
     assert np.all(np.asarray(inequality.multipliers.path_inequality) >= -1e-12)
@@ -130,11 +130,11 @@ def test_nonlinear_inequality_matches_the_equivalent_box():
 def test_vmap_over_parameters_equals_a_loop():
     targets = jnp.array([0.0, 1.0, 3.0])
     starts = jnp.array([1.0, -0.5, 0.2])
-    batched = jax.jit(jax.vmap(lambda a, s: ip.solve(_integrator(a=a, start=s), jnp.zeros((K, 3)), jnp.zeros(1), OPTIONS)))(
+    batched = jax.jit(jax.vmap(lambda a, s: ip.solve(integrator(a=a, start=s), jnp.zeros((K, 3)), jnp.zeros(1), OPTIONS)))(
         targets, starts
     )
     for i in range(3):
-        single = solve(_integrator(a=targets[i], start=starts[i]), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+        single = solve(integrator(a=targets[i], start=starts[i]), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
         assert np.allclose(batched.Z[i], single.Z, atol=1e-10)
         assert int(batched.status[i]) == int(single.status) == ip.Status.CONVERGED
         expected = _dense_kkt_solution(a=float(targets[i]), start=float(starts[i]))
@@ -144,7 +144,7 @@ def test_vmap_over_parameters_equals_a_loop():
 def _out_of_reach(u_max):
     """The integrator with |u| ≤ u_max, no drift (θ = 0) and the last position pinned at 50: for
     small u_max, infeasible."""
-    nlp = _integrator(u_max=u_max)
+    nlp = integrator(u_max=u_max)
     return StagewiseNLP(**{**nlp.__dict__, "z_lower": nlp.z_lower.at[-1, 0].set(50.0), "z_upper": nlp.z_upper.at[-1, 0].set(50.0),
                            "theta_lower": jnp.zeros(1), "theta_upper": jnp.zeros(1)})
 
@@ -240,7 +240,7 @@ def test_slacks_start_at_the_rows_of_the_pushed_guess_and_every_slack_setting_re
     guess pushed inside its bounds (IPOPT's), ``"guess"`` at the guess itself; ``ipopt_slacks``
     (δ_w on the slacks) does not change the start. Every combination reaches the same optimum.
     Here the guess's u = 0.8 lies outside |u| ≤ 0.5: u² starts at 0.2401, not 0.64."""
-    nlp = _integrator(CAPPED, u_max=0.5, energy_cap=1.0)
+    nlp = integrator(CAPPED, u_max=0.5, energy_cap=1.0)
     Z0 = jnp.zeros((K, 3)).at[:, 2].set(0.8)
     solutions = []
     for slack_start, ipopt_slacks in (("guess", False), ("pushed", False), ("pushed", True)):
@@ -330,7 +330,7 @@ def test_vmap_over_initial_guesses_equals_a_loop():
 
 
 def test_warm_start_from_a_solution_and_its_multipliers():
-    nlp = _integrator(CAPPED, energy_cap=0.01)
+    nlp = integrator(CAPPED, energy_cap=0.01)
     cold = solve(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
     options = ip.Options(tolerance=1e-9, stationarity=1e-9, barrier0=1e-9, bound_push=1e-9)
     warm = solve(nlp, cold.Z, cold.theta, options=options, multipliers=cold.multipliers,
@@ -357,7 +357,7 @@ def test_a_non_finite_value_stops_the_solve_with_the_last_finite_iterate():
 def test_progress_callback_sees_every_iteration_record():
     records = []
     options = ip.Options(tolerance=1e-9, stationarity=1e-9, progress=lambda i, r: records.append((int(i), np.asarray(r))))
-    solution = solve(_integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=options)
+    solution = solve(integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=options)
     jax.effects_barrier()
     count = int(solution.iterations)
     assert [i for i, _ in records] == list(range(count))
@@ -368,7 +368,7 @@ def test_history_counts_the_block_solves_of_each_iteration():
     """Every step costs at least one block solve and at most one per refinement of each
     direction (the Newton step and its second-order corrections); the row of the converged
     iterate, where no step is taken, records none."""
-    solution = solve(_integrator(CAPPED, energy_cap=0.01), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    solution = solve(integrator(CAPPED, energy_cap=0.01), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
     count = int(solution.iterations)
     solves = np.asarray(solution.history)[:count, ip.HISTORY_COLUMNS.index("linear_solves")]
     assert ip.Status(int(solution.status)) is ip.Status.CONVERGED and count > 3
@@ -382,7 +382,7 @@ def test_history_counts_the_factorisations_of_the_inertia_correction():
     the Hessian diag(−398, 200) everywhere: the first iteration's attempts with δ_w = 0, 1e-4,
     1e-2, 1 and 100 each stop at block 0 (1 block each) and δ_w = 1e4 factors all 3 blocks:
     (5 + 3) / 3 factorisations."""
-    convex = solve(_integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
+    convex = solve(integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
     history = np.asarray(convex.history)[: int(convex.iterations)]
     assert np.all(history[:, ip.HISTORY_COLUMNS.index("factorisations")] == 1.0)
     free = jnp.full((3, 2), jnp.inf)
@@ -421,11 +421,11 @@ def test_a_filter_entry_does_not_reject_the_point_it_was_made_from():
     entries_theta = jnp.array([1e4, (1 - 1e-5) * theta0, jnp.inf])
     entries_phi = jnp.array([-jnp.inf, phi0 - 1e-8 * theta0, jnp.inf])
     assert entries_phi[1] == phi0  # the margin is below φ0's rounding
-    assert not ip._in_filter(theta0, phi0, entries_theta, entries_phi)
-    assert ip._in_filter(2 * theta0, phi0 + 1e-9, entries_theta, entries_phi)  # worse in both
-    assert not ip._in_filter(2 * theta0, phi0 - 1e-9, entries_theta, entries_phi)  # better in φ
-    assert not ip._in_filter(0.5 * theta0, phi0 + 1.0, entries_theta, entries_phi)  # better in θ
-    assert ip._in_filter(2e4, -1e30, entries_theta, entries_phi)  # beyond the envelope θ_max
+    assert not ip.in_filter(theta0, phi0, entries_theta, entries_phi)
+    assert ip.in_filter(2 * theta0, phi0 + 1e-9, entries_theta, entries_phi)  # worse in both
+    assert not ip.in_filter(2 * theta0, phi0 - 1e-9, entries_theta, entries_phi)  # better in φ
+    assert not ip.in_filter(0.5 * theta0, phi0 + 1.0, entries_theta, entries_phi)  # better in θ
+    assert ip.in_filter(2e4, -1e30, entries_theta, entries_phi)  # beyond the envelope θ_max
 
 
 advance = jax.jit(ip.advance, static_argnames="options")
@@ -437,7 +437,7 @@ def test_a_filter_that_rejects_every_trial_leaves_the_soft_restoration_step():
     and no filter resets), IPOPT's soft restoration takes the Newton step to its
     fraction-to-boundary length if it lowers the primal–dual error, and puts the point it left
     in the filter; without it the step is rejected. The solve then converges to the optimum."""
-    nlp = _integrator(CAPPED, energy_cap=0.01)
+    nlp = integrator(CAPPED, energy_cap=0.01)
     reference = solve(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
     for soft_steps in (0, 10):
         options = dataclasses.replace(OPTIONS, max_filter_resets=0, max_soft_steps=soft_steps)

@@ -22,7 +22,7 @@ this machine, and what a second CPU device adds to one solve.
    fewer variables per knot would leave for the linear algebra, measured rather than
    extrapolated from the FLOP count (``--devices`` still times the task's own structure).
 
-Usage: python benchmarks/floor.py [--scenario take_off] [--knots N] [--iterations 243]
+Usage: python tools/floor.py [--scenario take_off] [--knots N] [--iterations 243]
        [--budget 10] [--repeats 15] [--devices] [--knot-size n --coupled s]
 """
 
@@ -30,9 +30,14 @@ import os
 
 os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
 
+import pathlib  # noqa: E402
+import sys  # noqa: E402
+
+# benchmarks/machine.py: the machine, versions and tables that the benchmarks print too
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
+
 import argparse  # noqa: E402
 import subprocess  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402

@@ -16,13 +16,19 @@ where our Newton step differed from IPOPT's (README, "Session 24").
 
 Not a timing benchmark: both solves are capped at --iterations and not timed.
 
-Usage: python benchmarks/follow_ipopt.py [--scenario take_off] [--knots 14] [--iterations 60]
+Usage: python tools/follow_ipopt.py [--scenario take_off] [--knots 14] [--iterations 60]
        [--part 1e-4]
 """
 
 import os
 
 os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
+
+import pathlib  # noqa: E402
+import sys  # noqa: E402
+
+# benchmarks/machine.py: the machine, versions and tables that the benchmarks print too
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
@@ -35,7 +41,7 @@ import numpy as np  # noqa: E402
 
 import jaxmm  # noqa: E402  (enables float64)
 from machine import machine_lines, render  # noqa: E402
-from jaxmm import optimise, tasks  # noqa: E402
+from jaxmm import solve, tasks  # noqa: E402
 
 # One row of IPOPT's iteration log: iter[r] objective inf_pr inf_du lg(mu) ||d|| lg(rg) alpha_du alpha_pr ls
 IPOPT_ROW = re.compile(r"^\s*(\d+)(r?)\s+(\S+)\s+(\S+)\s+\S+\s+\S+\s+\S+\s+(\S+)\s+\S+\s+(\S+)\s+\d+\s*$")
@@ -55,8 +61,8 @@ def ipopt_iterations(log_text):
 
 def our_iterations(task, iterations):
     """The history rows (``interior_point.HISTORY_COLUMNS``) of our solve from the published guess."""
-    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, max_iterations=iterations)
-    history = np.asarray(optimise.solve_task(task, options=options).solution.history)
+    options = dataclasses.replace(solve.DEFAULT_OPTIONS, max_iterations=iterations)
+    history = np.asarray(solve.solve_task(task, options=options).solution.history)
     return history[~np.isnan(history[:, 0])]
 
 

@@ -1,7 +1,7 @@
 """Where the time of a solver iteration goes: a profile of the compiled iterations of one
 scenario, each XLA operation's time attributed to the jaxmm function that emitted it.
 
-How: the solve's iterations program (``optimise._advance``, the one every solve runs) is
+How: the solve's iterations program (``programs.advance``, the one every solve runs) is
 compiled once; it runs ``--skip`` iterations from the published guess, then ``--iterations``
 more from that point, twice plainly (the faster gives the wall time per iteration) and once
 under ``jax.profiler`` (the profiler's own events slow it; the plain time is the true one). Every
@@ -21,7 +21,7 @@ stack tables of the compiled program's text (``FileNames``, ``FunctionNames``,
 ``FileLocations``, ``StackFrames``, ``stack_frame_id=``), as jaxlib 0.10 prints them; a jaxlib
 that prints none makes the script stop with a message saying so.
 
-Usage: python benchmarks/profile_iteration.py [--scenario take_off] [--knots N] [--skip 20]
+Usage: python tools/profile_iteration.py [--scenario take_off] [--knots N] [--skip 20]
        [--iterations 10] [--top 40] [--unattributed 15] [--cache DIR]
 """
 
@@ -29,19 +29,23 @@ import os
 
 os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
 
+import pathlib  # noqa: E402
+import sys  # noqa: E402
+
+# benchmarks/machine.py: the machine, versions and tables that the benchmarks print too
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
+
 import argparse  # noqa: E402
 import collections  # noqa: E402
 import dataclasses  # noqa: E402
-import pathlib  # noqa: E402
 import re  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 
 import jax  # noqa: E402
 
 import jaxmm  # noqa: E402,F401  (enables float64)
 from machine import format_time, log, machine_lines, render, timed  # noqa: E402
-from jaxmm import compilation, optimise, tasks  # noqa: E402
+from jaxmm import compilation, programs, solve, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 
 # Events of the trace that are not operations of the program: the executor's and the thread
@@ -156,12 +160,12 @@ def main():
     for line in machine_lines(("jax", "jaxlib")):
         print(line)
     task = tasks.scenario(args.scenario, knots=args.knots, keep_horizon=args.knots is not None)
-    options = dataclasses.replace(optimise.DEFAULT_OPTIONS, max_iterations=args.skip + args.iterations)
-    guess, options, multipliers, bound_multipliers = optimise.prepare(task, None, options)
-    state = optimise._start(task, guess, options, multipliers, bound_multipliers)
+    options = dataclasses.replace(solve.DEFAULT_OPTIONS, max_iterations=args.skip + args.iterations)
+    guess, options, multipliers, bound_multipliers = programs.prepare(task, None, options)
+    state = programs.start(task, guess, options, multipliers, bound_multipliers)
     options = ip.iteration_options(options)
     log("compiling the iterations …")
-    advance, compile_time = timed(lambda: optimise._advance.lower(task, state, options, options.max_iterations).compile())
+    advance, compile_time = timed(lambda: programs.advance.lower(task, state, options, options.max_iterations).compile())
     text = advance.as_text()
     origins, signatures = stack_tables(text), instruction_signatures(text)
     start = jax.block_until_ready(advance(task, state, args.skip))

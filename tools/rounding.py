@@ -13,16 +13,22 @@ with XLA's fusion emitters on, off, and with the knot's variables in another ord
 Printed: per copy (0: the published guess itself), the iterations, the factorisations per
 iteration, the solve time, the objective, the status and ``analysis.validate``; then the
 iterations' and solve times' median, minimum and maximum. Compile time apart. ``--option
-name=value`` (repeatable) solves with ``optimise.DEFAULT_OPTIONS`` so changed (a Python literal:
+name=value`` (repeatable) solves with ``solve.DEFAULT_OPTIONS`` so changed (a Python literal:
 ``--option regularisation_decrease=0.01``): compare a variant with the default by their spreads.
 
-Usage: python benchmarks/rounding.py [--scenario take_off] [--knots N] [--copies 6]
+Usage: python tools/rounding.py [--scenario take_off] [--knots N] [--copies 6]
        [--scale 1e-12] [--seed 0] [--option name=value ...]
 """
 
 import os
 
 os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
+
+import pathlib  # noqa: E402
+import sys  # noqa: E402
+
+# benchmarks/machine.py: the machine, versions and tables that the benchmarks print too
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import argparse  # noqa: E402
 import ast  # noqa: E402
@@ -35,7 +41,7 @@ import numpy as np  # noqa: E402
 import jaxmm  # noqa: E402  (enables float64)
 from machine import format_time, log, machine_lines, render, timed  # noqa: E402
 from solve_scenarios import per_iteration  # noqa: E402
-from jaxmm import analysis, optimise, tasks  # noqa: E402
+from jaxmm import analysis, programs, solve, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 
 
@@ -48,7 +54,7 @@ def perturbed(guess, scale, seed):
 
 
 def solver_options(assignments):
-    """``optimise.DEFAULT_OPTIONS`` with the ``name=value`` strings applied (values: Python
+    """``solve.DEFAULT_OPTIONS`` with the ``name=value`` strings applied (values: Python
     literals); a ValueError names an unknown option or a value that is not a literal."""
     changes = {}
     fields = {f.name for f in dataclasses.fields(ip.Options)}
@@ -60,7 +66,7 @@ def solver_options(assignments):
             changes[name.strip()] = ast.literal_eval(value.strip())
         except (ValueError, SyntaxError):
             raise ValueError(f"--option {text!r}: {value.strip()!r} is not a Python literal") from None
-    return dataclasses.replace(optimise.DEFAULT_OPTIONS, **changes)
+    return dataclasses.replace(solve.DEFAULT_OPTIONS, **changes)
 
 
 def main():
@@ -83,7 +89,7 @@ def main():
     task = tasks.scenario(args.scenario, knots=args.knots)
     guess = tasks.initial_guess(task)
     log(f"{args.scenario} N = {task.n_intervals}: compiling...")
-    run, compile_time = timed(lambda: optimise.compile_solve(task, guess, options))
+    run, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
     changed = ", ".join(args.option) or "the default options"
     print(f"\n{args.scenario}, N = {task.n_intervals}, {changed}: compile {format_time(compile_time)}; "
           f"copies perturbed by a relative {args.scale:g} (seeds {args.seed}..{args.seed + args.copies - 1})\n")

@@ -421,7 +421,7 @@ def _rounding(dtype):
     return 10 * jnp.finfo(dtype).eps
 
 
-def _in_filter(theta, phi, filter_theta, filter_phi):
+def in_filter(theta, phi, filter_theta, filter_phi):
     """Whether (θ, φ) is rejected by the filter: worse than an entry in both, by more than 10 ε
     of that entry (IPOPT's comparison), so that no entry rejects the point it was made from."""
     rounding = _rounding(filter_theta.dtype)
@@ -633,7 +633,7 @@ def advance(nlp, state, options=Options(), until=None):
                        zu, dzu, du_new, bounds.has_upper)
         theta_new = _infeasibility(c_new)
         phi_new = f_new + _barrier(P_new, bounds, state.mu)
-        done = found & (theta_new <= 0.9 * state.restoration_theta) & ~_in_filter(
+        done = found & (theta_new <= 0.9 * state.restoration_theta) & ~in_filter(
             theta_new, phi_new, state.filter_theta, state.filter_phi)
         count = state.restoration_iterations + 1
         failed = ~done & (~found | (count >= options.max_restoration_iterations))
@@ -864,9 +864,9 @@ def advance(nlp, state, options=Options(), until=None):
             switching = (slope < 0) & (alpha * (-slope) ** 2.3 > theta0_**1.1) & (theta0_ <= state.theta_min)
             armijo = ph - phi0 - 1e-8 * alpha * slope <= rounding * jnp.abs(phi0)
             decrease = (th <= (1 - 1e-5) * theta0_) | (ph - phi0 + 1e-8 * theta0_ <= rounding * jnp.abs(phi0))
-            in_filter = _in_filter(th, ph, filter_theta, filter_phi)
+            filtered = in_filter(th, ph, filter_theta, filter_phi)
             sufficient = jnp.isfinite(th) & jnp.isfinite(ph) & jnp.where(switching, armijo, decrease)
-            return sufficient & ~in_filter, switching & armijo, sufficient & in_filter
+            return sufficient & ~filtered, switching & armijo, sufficient & filtered
 
         rounding = _rounding(dtype)
         th1, ph1, c1 = trial(alpha_max, dP)
