@@ -47,7 +47,7 @@ column then reads "coarse + fine"; compile and solve times count both levels.
 --ipopt-slacks solves with ``Options(ipopt_slacks=True)`` (δ_w regularises the slacks too, as
 IPOPT's δ_s = δ_w), in every scenario or, given a comma-separated list, in those only; the rows
 it applies to are marked. --slack-start guess starts the slacks at the rows' values at the guess
-itself instead of at the pushed guess (``Options.slack_start``, the default before session 26).
+itself instead of at the pushed guess (``Options.slack_start``).
 
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.

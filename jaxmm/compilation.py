@@ -1,13 +1,10 @@
 """``jit``: ``jax.jit`` with the XLA options jaxmm's programs compile with.
 
-On CPUs, XLA (measured with jaxlib 0.10.2) hands element-wise and reduction fusions to
-YNNPACK; on the kinematics of many knots at once (arrays of shape (knots, 37, 3, 3) on iRonCub)
-those ran slower than XLA's own loops. Without them, one core of this project's machine: the
-kinematics Jacobian of 71 knots 30 → 22 ms, its second derivative 55 → 44 ms (200 knots:
-88 → 63 and 168 → 118 ms); the first 30 take-off iterations at N = 70 0.502 → 0.427 s each
-(same run); at N = 14 no difference beyond the machine's noise (±15 %). The option is passed
-only where this jaxlib knows it (checked once, by compiling a trivial function); it changes
-nothing on other backends.
+On CPUs, XLA (from jaxlib 0.10) hands element-wise and reduction fusions to YNNPACK; on the
+kinematics of many knots at once (arrays of shape (knots, 37, 3, 3) on iRonCub) those run slower
+than XLA's own loops, so jaxmm turns them off (docs/design-decisions.md, "YNNPACK fusions off").
+The option is passed only where this jaxlib knows it (checked once, by compiling a trivial
+function); it changes nothing on other backends.
 
 ``use_persistent_cache``: compiled programs kept on disk (JAX's persistent compilation cache), so
 that a new process solving a problem structure solved before loads its programs instead of

@@ -36,9 +36,9 @@ _pin_xdist_worker()
 # subprocesses share it; .ci/run sets it for its main job too (entries need the same bookkeeping).
 os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(16 << 30))
 # The suite compiles far more than it runs: at XLA's lowest backend optimisation and without its
-# MLIR fusion emitters, a small problem's solve compiles 3.5x faster (25 s -> 7 s on session 40's
-# machine) and take-off at N = 14 2.4x faster (334 s -> 137 s), for a solve ~3x slower (15 s ->
-# 45 s), with the same optimum. Set before JAX starts, and so for notebook kernels too; .ci/run
+# MLIR fusion emitters, a small problem's solve compiles about 3.5x faster and take-off at
+# N = 14 about 2.4x faster, for a solve about 3x slower, with the same optimum
+# (docs/design-decisions.md, "XLA's lowest backend optimisation in the tests"). Set before JAX starts, and so for notebook kernels too; .ci/run
 # sets the same for its main job, whose compiled programs the tests then load (the flags are part
 # of the persistent cache's key). Results change only by rounding; speed is measured in
 # benchmarks/, which use XLA's defaults.
@@ -155,8 +155,7 @@ def free_compiled_programs():
     """Drop the process's compiled programs. Every executable XLA's CPU backend loads keeps
     thousands of memory mappings (one compiled iRonCub solve: ≈ 12,000), and a process may hold
     65,530 (Linux's default ``vm.max_map_count``): a worker that had run several solver files
-    failed to compile the next with LLVM's "Cannot allocate memory" and died (sessions 25 and
-    26). What is needed later is loaded again from the persistent cache."""
+    fails to compile the next with LLVM's "Cannot allocate memory" and dies. What is needed later is loaded again from the persistent cache."""
     jax.clear_caches()
     gc.collect()
 

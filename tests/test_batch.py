@@ -13,9 +13,8 @@ A batch and a single solve round differently (batched and unbatched XLA kernels)
 the first iteration; the nonconvex iteration amplifies it (≈ 1e-10 after 40 iterations on the
 take-off, 4e-6 at iteration 17 of the standing task below), and over hundreds of iterations the
 two may stop a few iterations apart at points equal within the solver's stationarity tolerance.
-With the slacks starting at the pushed guess (the default since session 26) the early phase
-amplifies faster: at EARLY = 10 the two differed by 3.8e-8 at iteration 8 (session 27), and a
-rounding-level change of the solver made the batch refine one step once more than the single
+With the slacks starting at the pushed guess (the default) the early phase amplifies faster:
+at EARLY = 10 the two have differed by 3.8e-8 at iteration 8, and a rounding-level change of the solver made the batch refine one step once more than the single
 solve at iteration 6 (then 1.2e-6 apart). So the first ``EARLY`` iterations must agree to
 ``SAME_PATH`` and the answers to ``SAME_ANSWER``.
 """
@@ -46,7 +45,7 @@ ROUNDING = 1e-14  # the same guess computed compiled and eagerly
 def _free_compiled_programs_after():
     """For the tests that compile programs of their own (the sliced batches): this file's batch,
     single solves and sliced batches kept together in one process passed ``vm.max_map_count``
-    (a ``pytest -m slow`` run died at the second sliced batch in session 27). Not after every
+    (a ``pytest -m slow`` run has died at the second sliced batch). Not after every
     test: the sharing test counts the batch's compiled programs."""
     yield
     free_compiled_programs()
@@ -165,7 +164,7 @@ def test_a_time_budget_stops_the_batch_on_its_path(problems, solved, vectorised)
 
 
 def test_a_broadcast_task_has_the_leaf_types_of_stacked_tasks(task):
-    """So that solve_batch (one task, broadcast) and solve_batch share one compiled solve:
+    """So that a multi-start batch (one task, broadcast) and a batch of tasks share one compiled solve:
     a weakly typed leaf (a float given in Python) would make jit compile another."""
     other = tasks.scenario("take_off", **{**REDUCED_TAKE_OFF, "final_com": (0.0, 0.0, 0.78)})
     assert jax.tree.map(jax.typeof, batch.broadcast_task(task, 2)) == jax.tree.map(
@@ -330,10 +329,12 @@ def test_mismatched_batches_are_rejected_before_compiling(task, problems):
         batch.solve_batch(task, guesses, time_budget=-1)
     with pytest.raises(ValueError, match="a sharded batch is one call: it takes no time_budget"):
         batch.solve_batch(task, guesses, mesh=batch.batch_mesh(), time_budget=10.0)
-    with pytest.raises(ValueError, match="task is batched"):
+    with pytest.raises(ValueError, match="3 guesses for a batch of 2 tasks"):
         batch.solve_batch(batch.stack_tasks([task, task]), guesses)
-    with pytest.raises(ValueError, match=r"is a scalar: not batched"):
-        batch.solve_batch(task, guesses)
+    with pytest.raises(ValueError, match=r"a batch of one task needs its guesses \(see sample_guesses\)"):
+        batch.solve_batch(task)
+    with pytest.raises(TypeError, match="tasks must be a Task, a batched Task or a list of Tasks, got int"):
+        batch.solve_batch(3, guesses)
     with pytest.raises(TypeError, match="guesses must be a batched Trajectory or a list of Trajectories"):
         batch.solve_batch(task, {"total_time": jnp.ones(3)})
     ragged = dataclasses.replace(guesses, total_time=jnp.ones(2))

@@ -10,6 +10,7 @@ the cold and warm-started solves, and one adjoint program. The solving tests are
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -64,7 +65,7 @@ def test_the_take_off_gradient_matches_central_differences_of_re_solves(polished
     """d(thrust impulse)/d(parameter) at the take-off's solution, against (J(p + h) − J(p − h)) / 2h
     from re-solves warm-started at that solution in the same scaling (``same_scaling``).
 
-    Both matter (measured, session 8). Without ``same_scaling`` a re-solve recomputes the cost
+    Both matter (measured). Without ``same_scaling`` a re-solve recomputes the cost
     factor at its start, and that factor is ∝ 1 / w_final_thrust (the largest cost gradient is the
     final-thrust term): the barrier problem at μ > 0 then changes with the weight through its
     scaling too, and the differences of final_thrust disagree with the implicit derivative (which
@@ -129,3 +130,30 @@ def test_tuning_rejects_unknown_and_zero_weights():
         tuning.tune_weights(task, impulse, names=("com_velocity",))
     with pytest.raises(ValueError, match="not positive"):
         tuning.tune_weights(task, impulse, names=("thrust",))  # 0 in the take-off
+
+
+@pytest.mark.slow
+def test_jax_grad_through_a_differentiable_solve_is_the_adjoint_gradient(polished):
+    """``jax.grad`` of a loss through ``solve_task(..., differentiable=True)`` (the solve's custom
+    VJP) equals ``solve.gradient`` at the same optimum (one adjoint solve, no re-solve)."""
+    task, result = polished
+
+    def loss(weights):
+        tuned = dataclasses.replace(task, weights=weights)
+        again = solve_task(tuned, warm_start=result, differentiable=True)
+        return impulse(tuned, again.trajectory)
+
+    through = jax.grad(loss)(task.weights)
+    _, task_bar, diagnostics = solve.gradient(task, result, impulse)
+    assert bool(diagnostics.reliable()), diagnostics
+    for name in ("com_vel", "final_thrust", "thrust"):
+        a, b = float(getattr(through, name)), float(getattr(task_bar.weights, name))
+        assert abs(a - b) <= 1e-5 * max(abs(b), 1e-12), (name, a, b)
+
+
+def test_a_differentiable_solve_takes_no_budget_or_interrupts():
+    task = tasks.scenario("take_off", **REDUCED_TAKE_OFF)
+    with pytest.raises(ValueError, match="a differentiable solve is one call: it takes no time_budget"):
+        solve_task(task, differentiable=True, time_budget=10.0)
+    with pytest.raises(TypeError, match="differentiable must be a bool or sensitivity.Options, got str"):
+        solve_task(task, differentiable="yes")

@@ -43,11 +43,9 @@ def _run(name, directory):
 
 
 # The tuning studies solve and differentiate a dozen times even at CI sizes (10 minutes on one
-# core), and the multistart notebook compiles a vmapped batch of robot solves (206 s in session
-# 29's CI-like run, which took 21.7 minutes with it): like the other robot-scale batch and
-# tuning tests, they run by hand with ``pytest -m slow``. So does the IPOPT notebook since
-# session 39 (85 s of building the CasADi NLP and compiling, in a CI-like run of 20.05 minutes
-# with it), whose comparison ``test_solve_task``'s IPOPT cross-checks make on converged optima,
+# core), and the multistart notebook compiles a vmapped batch of robot solves (minutes): like
+# the other robot-scale batch and tuning tests, they run by hand with ``pytest -m slow``. So does
+# the IPOPT notebook (about 85 s of building the CasADi NLP and compiling), whose comparison ``test_solve_task``'s IPOPT cross-checks make on converged optima,
 # and the all-scenarios notebook (53 s; at CI sizes the take-off that 02 solves).
 SLOW = {"03_all_scenarios", "04_multistart", "05_weight_tuning", "06_ipopt_reference"}
 

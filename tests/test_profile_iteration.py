@@ -34,7 +34,7 @@ def test_operations_are_attributed_to_the_jaxmm_functions_that_emitted_them():
     frames = {name: profile_iteration.jaxmm_frames(stack) for name, stack in origins.items()}
     # Some operations come from so3.quaternion_to_rotation, and their stacks reach it through
     # this test's _program (which is not in jaxmm, so it is not among the jaxmm frames).
-    assert any(("so3.py", "quaternion_to_rotation") in f for f in frames.values())
+    assert any(("rigid_body/so3.py", "quaternion_to_rotation") in f for f in frames.values())
     assert not any(any(module.startswith("tests") for module, _ in f) for f in frames.values())
     jax.block_until_ready(compiled(quaternions, matrices))
     with tempfile.TemporaryDirectory() as directory:
@@ -46,7 +46,7 @@ def test_operations_are_attributed_to_the_jaxmm_functions_that_emitted_them():
     assert times and 0 < inside <= span
     assert not any(name.startswith(profile_iteration.CONTAINERS) for name in times)
     assert all(counts[name] == 3 for name in times)  # each operation once per call
-    rotation = [name for name in times if ("so3.py", "quaternion_to_rotation") in frames.get(name, ())]
+    rotation = [name for name in times if ("rigid_body/so3.py", "quaternion_to_rotation") in frames.get(name, ())]
     assert rotation and all(times[name] > 0 for name in rotation)
     assert any("cholesky" in name and not frames.get(name) for name in times)  # called here, not in jaxmm
 

@@ -160,7 +160,7 @@ def test_qp_gradient_equals_the_closed_form(qp):
 
 def test_qp_jvp_is_the_transpose_of_vjp_and_the_diagnostics_are_clean(qp):
     """⟨Z̄, Ż⟩ = ⟨nlp̄, ṅlp⟩ to 1e-10, with the KKT solves refined to 1e-15: at the default
-    1e-13 a solve may stop after one GMRES cycle (residual 9e-14 here, session 26), and this
+    1e-13 a solve may stop after one GMRES cycle (residual 9e-14 here), and this
     KKT system's conditioning turns that into 1e-9 in the products."""
     nlp = _qp(QP_PARAMETERS)
     rng = np.random.default_rng(1)
@@ -177,7 +177,7 @@ def test_qp_jvp_is_the_transpose_of_vjp_and_the_diagnostics_are_clean(qp):
         assert int(diagnostics.cycles) >= 1
 
 
-@pytest.mark.slow  # ≈ 55 s of compiling: keeps the default run under 20 minutes (session 39)
+@pytest.mark.slow  # ≈ 55 s of compiling: keeps the default run under 20 minutes
 def test_gradient_is_nan_when_the_solve_did_not_converge():
     """An unconverged solve has no KKT point to differentiate: strict mode says so with NaN."""
     stopped = ip.Options(max_iterations=2)
@@ -268,7 +268,7 @@ def test_nonlinear_gradient_matches_central_differences_of_warm_started_solves()
         assert abs(float(grad[name]) - difference) <= 1e-4 * abs(difference), (name, float(grad[name]), difference)
 
 
-@pytest.mark.slow  # ≈ 50 s of compiling: keeps the default run under 20 minutes (session 40's machine, 1.65× slower than session 39's)
+@pytest.mark.slow  # ≈ 50 s of compiling: keeps the default run under 20 minutes
 def test_integer_leaves_get_float0_and_the_rest_matches():
     base = jax.jit(ip.solve, static_argnames="options")(_swing(SWING_PARAMETERS), jnp.zeros((SWING_KNOTS, 3)),
                                                          jnp.ones(1), options=TIGHT)

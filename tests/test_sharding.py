@@ -11,9 +11,9 @@ Not bit-identical to it: XLA compiles the per-device program of ``shard_map`` di
 the plain jit (measured: the unsharded batch, a one-device mesh and single solves agree bit for
 bit; two devices differ from all of them, and from the unsharded batches of each device's two
 instances, by rounding: the first history rows equal, objectives after 15 iterations within
-1.3e-9, with or without multithreaded Eigen, in session 15; with the solver of session 28 the
-differences grow about a thousandfold per iteration from the third: 6e-11 at the fourth, 1.7e-5
-after 15, as single solves' paths part under rounding-level changes)."""
+1.3e-9 with or without multithreaded Eigen; the differences can grow about a thousandfold per
+iteration from the third: 6e-11 at the fourth, 1.7e-5 after 15, as single solves' paths part
+under rounding-level changes)."""
 
 import json
 import os
@@ -79,8 +79,8 @@ def test_a_batch_sharded_over_two_devices_gives_the_unsharded_answers():
     assert result["devices"] == 2, result
     assert result["repeatable"], result
     assert result["statuses"] == result["plain_statuses"] and result["iterations"] == result["plain_iterations"], result
-    # The same path, rounding apart, amplified from one iteration to the next (take-off N = 3; session 28:
-    # 3e-15, 9e-14, 4e-11, 6e-11, then 9e-8 at the fifth and 1.7e-5 after 15; session 30, another CPU:
+    # The same path, rounding apart, amplified from one iteration to the next (take-off N = 3, seen:
+    # 3e-15, 9e-14, 4e-11, 6e-11, then 9e-8 at the fifth and 1.7e-5 after 15; on another CPU
     # 4e-16, 7e-14, 7e-9, 4.6e-7, then ≈ 6e-7).
     differences = result["history_differences"]
     assert max(differences[:2]) <= 1e-12 and max(differences[:4]) <= 1e-6, result

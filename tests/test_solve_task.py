@@ -57,8 +57,8 @@ def test_reduced_take_off_with_ipopt_slacks_reaches_the_same_optimum(take_off):
     take-off-and-landing needs fewer iterations) solves the reduced take-off to the default's
     optimum, and the answer passes ``validate``.
     Slow (``pytest -m slow``): with its compiled solve (a third in this worker) in the default
-    run, the next test's compilation failed with LLVM's "Cannot allocate memory" (session 25: the
-    worker's memory mappings, see ``conftest._free_compiled_programs``)."""
+    run, the next test's compilation can fail with LLVM's "Cannot allocate memory" (the
+    worker's memory mappings, see ``conftest.free_compiled_programs``)."""
     task, default = take_off
     options = dataclasses.replace(solve.DEFAULT_OPTIONS, ipopt_slacks=True)
     result = solve_task(task, options=options)
@@ -101,13 +101,13 @@ def _cross_check(task, result, tmp_path):
     assert theirs_violation <= 1e-4, "IPOPT's answer is not feasible: nothing to compare"
     assert float(result.solution.violation) <= max(theirs_violation, 1e-6)
     if ours > theirs * (1 + COMPARABLE):
-        # IPOPT ended at a lower feasible point, even where it stopped failing (the reduced jump,
-        # session 41: Error_In_Step_Computation 1.4e-3 below ours, its end moving from run to
-        # run; in session 40 it ended 4× above ours). Started there as from a neighbouring
+        # IPOPT ended at a lower feasible point, even where it stopped failing (seen on the
+        # reduced jump: Error_In_Step_Computation 1.4e-3 below ours, its end moving from run to
+        # run, once 4× above ours). Started there as from a neighbouring
         # solution (a small barrier, the bounds barely pushed), ours must hold that objective,
         # feasible: the two then differ in where the published guess leads, not in solving.
-        # Ours may end STALLED there (feasible, no acceptable step), as IPOPT did: session 41,
-        # 6.24501e5 against IPOPT's 6.24448e5 in 248 iterations.
+        # Ours may end STALLED there (feasible, no acceptable step), as IPOPT did (seen:
+        # 6.24501e5 against IPOPT's 6.24448e5 in 248 iterations).
         again = solve_task(task, guess=trajectory, options=dataclasses.replace(solve.DEFAULT_OPTIONS, **solve.WARM_START))
         print(f"ours from IPOPT's end: {float(again.solution.objective):.8e} (violation "
               f"{float(again.solution.violation):.1e}, {int(again.solution.iterations)} iterations, {again.status.name})")
@@ -135,11 +135,10 @@ def test_an_infeasible_take_off_is_reported_with_finite_numbers():
     bounds cannot move the CoM that far in 0.14 s. (With the 3.5–7 s horizon the same targets
     are feasible for the NLP: feet that push while airborne, paid for by complementarity slack.)
     The restoration phase minimises the violation before giving up: it spreads the gap of
-    several metres over the 14 steps' integration rows (0.42 m on the worst one, session 26), so
-    the stop is far above any tolerance, not at it. Steps cut to ≈ 1e-4 by the bounds used to
-    crawl there for 1877 iterations (session 35); since session 36 short steps that no longer
-    cut the violation start the restoration phase (``Options.max_short_steps``): 478
-    iterations, 174 of them restoring."""
+    several metres over the 14 steps' integration rows (0.42 m on the worst one), so
+    the stop is far above any tolerance, not at it. Steps cut to ≈ 1e-4 by the bounds would crawl
+    there for thousands of iterations; short steps that no longer cut the violation start the
+    restoration phase (``Options.max_short_steps``), so it ends within 1,000."""
     task = tasks.scenario("take_off", knots=14, min_dt=0.01, max_dt=0.01, final_com=(0.0, 0.0, 5.57),
                           max_thrust=(1.0, 1.0, 1.0, 1.0))
     result = solve_task(task)  # the default options: the same compiled solve as the take-off's
@@ -154,7 +153,7 @@ def test_an_infeasible_take_off_is_reported_with_finite_numbers():
 def test_warm_start_from_the_solution_of_a_neighbouring_task(take_off):
     """A target 2 cm lower, started from the take-off's solution and multipliers, converges in
     fewer than half the iterations of a cold solve of that task, to an optimum as good to 1e-3.
-    The task has two nearby local optima (session 22: 5.11340e6 and 5.11431e6): one feasible for
+    The task has two nearby local optima (5.11340e6 and 5.11431e6): one feasible for
     the NLP but not physical (with the CoM 2 cm lower, a corner 1 cm up keeps ≈ 6 N, paid for by
     ≈ 0.8 of complementarity slack; ``validate`` fails it), the other keeping the force off that
     corner; which one each solve reaches has changed with rounding-level changes of the solver,

@@ -126,7 +126,7 @@ def test_nonlinear_inequality_matches_the_equivalent_box():
     assert np.all(np.asarray(inequality.multipliers.path_inequality) >= -1e-12)
 
 
-@pytest.mark.slow  # ≈ 83 s of compiling; vmap over initial guesses stays in the default run: keeps the default run under 20 minutes (session 40's machine, 1.65× slower than session 39's)
+@pytest.mark.slow  # ≈ 83 s of compiling; vmap over initial guesses stays in the default run: keeps the default run under 20 minutes
 def test_vmap_over_parameters_equals_a_loop():
     targets = jnp.array([0.0, 1.0, 3.0])
     starts = jnp.array([1.0, -0.5, 0.2])
@@ -431,7 +431,7 @@ def test_a_filter_entry_does_not_reject_the_point_it_was_made_from():
 advance = jax.jit(ip.advance, static_argnames="options")
 
 
-@pytest.mark.slow  # ≈ 55 s of compiling: keeps the default run under 20 minutes (session 39)
+@pytest.mark.slow  # ≈ 55 s of compiling: keeps the default run under 20 minutes
 def test_a_filter_that_rejects_every_trial_leaves_the_soft_restoration_step():
     """When the line search turns every trial down (here a filter entry at zero infeasibility,
     and no filter resets), IPOPT's soft restoration takes the Newton step to its

@@ -37,7 +37,7 @@ def _dense_jacobian(nlp, blocks_of, K, nz, ng):
     return J
 
 
-# The backward-Euler, squared-slack variant on jumping (≈ 65 s) under ``pytest -m slow``: keeps the default run under 20 minutes (session 40's machine, 1.65× slower than session 39's).
+# The backward-Euler, squared-slack variant on jumping (≈ 65 s) under ``pytest -m slow``: keeps the default run under 20 minutes.
 @pytest.mark.parametrize("name, options", [
     ("take_off", {}),
     pytest.param("jumping", dict(integration="backward_euler", slack_penalty="squared"), marks=pytest.mark.slow),
@@ -151,8 +151,8 @@ def test_all_scenarios_build_at_published_size():
                                   for name in SCENARIOS])
 def test_every_unbounded_variable_enters_the_cost_or_a_constraint(name):
     """A free variable without bounds that no function reads makes every Newton matrix singular
-    (ḟ[0] on walk-to-fly, whose cost weighs no ḟ, until session 34: an inertia correction at
-    every iteration). At a random point of each scenario, every such variable has a non-zero
+    (ḟ[0] on walk-to-fly, whose cost weighs no ḟ, once cost an inertia correction at every
+    iteration). At a random point of each scenario, every such variable has a non-zero
     Jacobian column or cost curvature."""
     task = scenario(name, knots=4)
     nlp = transcription.stagewise_nlp(task)
@@ -221,7 +221,7 @@ def test_constraint_curvature_matches_jax_hessian(integration):
     if integration == "backward_euler":
         # Without a linearisation handed over, the kinematics computed inside (no solver calls
         # it so; the path rows do not depend on the integration): in the slow run, one
-        # compilation fewer in the default one (session 38).
+        # compilation fewer in the default one.
         variants.append(jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y))
     if integration == "trapezoidal":  # the path rows do not depend on it: once is enough
         # With the path multipliers the Jacobian pass also carries the kinematics' curvature at
@@ -268,7 +268,7 @@ def test_bad_transition_curvature_columns_are_refused(columns):
         stagewise.constraint_curvature(bad, Z, theta, *y)
 
 
-# The backward-Euler variant (≈ 35 s) under ``pytest -m slow``: keeps the default run under 20 minutes (session 40's machine, 1.65× slower than session 39's).
+# The backward-Euler variant (≈ 35 s) under ``pytest -m slow``: keeps the default run under 20 minutes.
 @pytest.mark.parametrize("integration", [pytest.param("backward_euler", marks=pytest.mark.slow), "trapezoidal"])
 def test_row_supports_cover_every_nonzero_of_the_jacobians(integration):
     """The declared sparsity (``constraints.FAMILY_FIELDS``) the solver's Gram products rely on:

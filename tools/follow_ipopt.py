@@ -11,8 +11,8 @@ first iteration whose objectives differ by more than --part (relative).
 Both sides start from the same point: IPOPT runs with ``bound_relax_factor`` 0 (by default it
 relaxes every bound by 1e-8 relative, which moves its start and its first steps); everything
 else as ``solve_scenarios.py --ipopt`` (``tol`` 1e-4, exact Hessian, MUMPS). IPOPT's log is read
-from its ``output_file`` at print level 5. Session 24 used this comparison to find two places
-where our Newton step differed from IPOPT's (README, "Session 24").
+from its ``output_file`` at print level 5. The first iteration at which the two logs part is
+where our Newton step differs from IPOPT's.
 
 Not a timing benchmark: both solves are capped at --iterations and not timed.
 

@@ -7,8 +7,8 @@ ways after a few iterations (the line search's and the inertia correction's deci
 thresholds), and the solve can end elsewhere after more or fewer iterations. A change to the
 code that only reorders floating-point sums (a variable layout, a compiler flag) has the same
 effect, so one solve's iteration count cannot tell such a change from a better or worse method:
-this spread is the yardstick (session 41: take-off N = 70 took 243, 252 and 315 iterations
-with XLA's fusion emitters on, off, and with the knot's variables in another order).
+this spread is the yardstick (take-off N = 70 took 243, 252 and 315 iterations with XLA's
+fusion emitters on, off, and with the knot's variables in another order).
 
 Printed: per copy (0: the published guess itself), the iterations, the factorisations per
 iteration, the solve time, the objective, the status and ``analysis.validate``; then the

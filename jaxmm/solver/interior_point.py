@@ -109,13 +109,13 @@ class Options:
     max_restoration_iterations: iterations of one restoration phase before ``INFEASIBLE`` (0
     turns the phase off: then ``max_rejections`` rejected steps far from feasible end the solve
     ``INFEASIBLE``); slack_start: where the inequality rows' slacks start: ``"pushed"`` (IPOPT's
-    rule, the default since session 26) at the rows' values at the starting point pushed inside
-    its bounds, ``"guess"`` at their values at the guess as given (the default before; with it
-    the published walk-to-fly does not converge); ipopt_slacks: δ_w regularises the slacks as it
+    rule, the default) at the rows' values at the starting point pushed inside its bounds,
+    ``"guess"`` at their values at the guess as given (with it the published walk-to-fly does
+    not converge; docs/design-decisions.md, "The slack start"); ipopt_slacks: δ_w regularises the slacks as it
     does (Z, θ) (IPOPT's δ_s = δ_w; off: (Z, θ) only): with the pushed start, the slacks treated
-    as IPOPT treats them, whose steps ours then follow (session 24); take-off-and-landing
-    converges in fewer iterations with it, take-off lands on an optimum that fails ``validate``
-    (README, "Results");
+    as IPOPT treats them, whose steps ours then follow (tools/follow_ipopt.py);
+    take-off-and-landing converges in fewer iterations with it, take-off lands on an optimum
+    that fails ``validate`` (docs/design-decisions.md);
     progress: called on the host after every iteration as progress(iteration, record) with
     record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
     """
@@ -372,8 +372,8 @@ class State:
 FILTER_SIZE = 128
 REFINEMENT_STEPS = 10  # most refinements of a step towards the exact KKT system (while the residual falls)
 # Refinement ends once the exact KKT residual is below this fraction of the right-hand side (or
-# stops falling by 10 %). 1e-14 (until session 22) cost 8–10 solves per iteration on take-off
-# N = 70 for no fewer iterations: 1e-10 took 496 iterations in 125 s there against 631 in 206 s.
+# stops falling by 10 %). A tighter 1e-14 costs 8–10 solves per iteration on take-off for no
+# fewer iterations (docs/design-decisions.md, "Iterative refinement to 1e-10").
 REFINEMENT_RATIO = 1e-10
 # The restoration phase minimises ½‖c‖² + (μ / RESTORATION_PENALTY) × barrier: IPOPT's weighs its
 # ℓ1 infeasibility by ρ = 1000 against the barrier and its proximal term. (With μ itself, the
@@ -750,7 +750,7 @@ def advance(nlp, state, options=Options(), until=None):
         def fixed_out(hessian):
             """The Newton matrix with the fixed variables' rows and columns out (1 on their
             diagonal), without Σ + δ_w: ``linalg.factor`` adds those block by block, so an
-            inertia correction's attempts share one pass over the blocks (8 ms each at N = 70)."""
+            inertia correction's attempts share one pass over the blocks."""
             D, L, Bd, C = hessian
             return (fz[:, :, None] * D * fz[:, None, :] + jax.vmap(jnp.diag)(fixed_z), fz[1:, :, None] * L * fz[:-1, None, :],
                     fz[:, :, None] * Bd * ft[None, None, :], ft[:, None] * C * ft[None, :] + jnp.diag(fixed_t))
@@ -761,9 +761,8 @@ def advance(nlp, state, options=Options(), until=None):
         # Inertia correction (IPOPT's rule but for the decrease): δ_w = 0 first, then from the last
         # δ_w × regularisation_decrease, ×8. IPOPT's third of the last δ_w kept take-off's δ_w at
         # 1.4–4100× the least that factors (median 5×; the need swings by 1000× between
-        # iterations): 702 iterations against 243 with 1e-3 (docs/solver-log.md, session 35).
-        # (Skipping δ_w = 0 saves a factorisation but keeps the steps damped: take-off N = 70
-        # took 636 iterations instead of 435.)
+        # iterations): 702 iterations against 243 with 1e-3 (docs/design-decisions.md, κ_w⁻).
+        # Skipping δ_w = 0 saves a factorisation but keeps the steps damped.
         def attempt(delta):
             blocks = fixed_out(condensed(delta)) if options.ipopt_slacks else unshifted
             chol = linalg.factor(*blocks, coupled=coupled, shift=fz * (sigma[0] + delta),

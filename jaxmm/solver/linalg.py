@@ -40,7 +40,7 @@ class Chain:
     (M, n, n), and the trailing s columns of their couplings to the next block of the chain,
     couplings (M, n, s). Transposed because LAPACK, which factors and solves, keeps matrices
     column by column: a row-major Lᵀ is a column-major L, read without a transposing copy (one
-    per block and solve; ≈ 7 % of a take-off iteration, session 33)."""
+    per block and solve)."""
 
     blocks: jax.Array
     couplings: jax.Array
@@ -90,7 +90,7 @@ def _factor_tridiagonal(D, L, order, s, shift):
     couplings: Lc_k^{−1} L_{k−1}'s last s columns); at M, Lc_M Lc_Mᵀ is what both chains leave
     of the block. The chains run together, a block each per step, and stop at the first block
     that is not positive definite: an inertia correction's failed attempts, indefinite near
-    either end of the horizon, then cost a few blocks (take-off, session 29).
+    either end of the horizon, then cost a few blocks.
 
     Returns (forward ``Chain``, the middle factor (n, n), backward ``Chain``, the number of
     diagonal blocks factored: K when A is positive definite)."""
@@ -100,7 +100,7 @@ def _factor_tridiagonal(D, L, order, s, shift):
         block, coupling = (lambda k: D[k] + jnp.diag(shift[k])), (lambda k: L[k][:, n - s :])
     else:
         # Reordered block by block, in cache: reordering the (K, n, n) arrays up front cost
-        # as much as the reordering saves (≈ 40 ms for 71 blocks of 178 × 178).
+        # as much as the reordering saves.
         block = lambda k: _take(_take(D[k], order, 0), order, 1) + jnp.diag(shift[k][order])  # noqa: E731
         coupling = lambda k: _take(_take(L[k], order, 0), order[n - s :], 1)  # noqa: E731
 
@@ -139,8 +139,7 @@ def _factor_tridiagonal(D, L, order, s, shift):
         return j + 1, Lf, Wf, Lb, Wb, count + ok_f + (ok_b & has_b), ok_f & ok_b
 
     # The factors are updated in place, indexed, rather than stacked as a scan's outputs
-    # (80 ms against 66 ms to factor 71 blocks of 178 × 178 here; 36 ms against 10.5 ms for a
-    # solve, where XLA copied blocks between the two scans).
+    # (a scan's outputs factor 1.2× and solve 3.4× slower: XLA copies blocks between the scans).
     Lf, Lb = jnp.zeros((M, n, n), D.dtype), jnp.zeros((M, n, n), D.dtype)
     Wf, Wb = jnp.zeros((M, n, s), D.dtype), jnp.zeros((M, n, s), D.dtype)
     count, ok = jnp.asarray(0), jnp.asarray(True)
@@ -232,7 +231,7 @@ def coupled_order(n, coupled):
 
 def _take(x, indices, axis):
     """x indexed by the static ``indices`` along ``axis``, as slices of their contiguous runs
-    concatenated: XLA's CPU gather took ≈ 40 ms to reorder 71 blocks of 178 × 178."""
+    concatenated: XLA's CPU gather is far slower at reordering the blocks."""
     cuts = np.flatnonzero(np.diff(indices) != 1) + 1
     runs = [(int(r[0]), int(r[-1]) + 1) for r in np.split(indices, cuts) if r.size] or [(0, 0)]
     return jnp.concatenate([jax.lax.slice_in_dim(x, a, b, axis=axis) for a, b in runs], axis=axis)
@@ -252,8 +251,7 @@ def factor(D, L, B, C, coupled=None, shift=None, corner_shift=None):
     shift = jnp.zeros(D.shape[:2], D.dtype) if shift is None else jnp.asarray(shift)
     C = C if corner_shift is None else C + jnp.diag(corner_shift)
     order, s = coupled_order(n, coupled)
-    # Coupled columns already last: nothing to reorder (for 71 blocks of 178 with 107 coupled,
-    # the same run time and half the compilation; session 41).
+    # Coupled columns already last: nothing to reorder (the same run time, half the compilation).
     order = None if order == tuple(range(n)) else order
     p = None if order is None else np.asarray(order)
     if p is not None:

@@ -154,7 +154,7 @@ def _path_hessian(task, z, theta, y_equality, y_inequality, linearisation=None):
             robot.model, _configuration(task, z), robot.contact_frames + robot.jet_frames, weights
         )
     # q = d_q z̃_q (the scaling of q's columns): the chain rule's Sᵀ ∇²κ S is scaled and added to
-    # q's block (the dense (nz × n_q) products cost ≈ 15 ms per iteration at N = 70).
+    # q's block (the dense (nz × n_q) products would cost more than the rest of the Hessian).
     q = _configuration_columns(task.layout)
     scale = task.layout.scale()[q]
     return _linearised_hessian(
@@ -212,8 +212,8 @@ def _hessian_over(fn, w0, columns):
 
 def _embedded(block, columns, size):
     """The (c, c) ``block`` at the rows and columns ``columns`` (static, increasing) of a
-    (size, size) zero matrix, from slices of it and zeros: XLA's CPU scatter into zeros cost
-    ≈ 15 ms per take-off iteration (N = 70) for the path Hessian alone (session 33)."""
+    (size, size) zero matrix, from slices of it and zeros: XLA's CPU scatter into zeros is
+    several times dearer for the path Hessian."""
     columns = np.asarray(columns)
     cuts = np.flatnonzero(np.diff(columns) != 1) + 1
     runs = [(int(r[0]), int(r[-1]) + 1) for r in np.split(columns, cuts) if r.size]
