@@ -6,14 +6,19 @@ than XLA's own loops, so jaxmm turns them off (docs/design-decisions.md, "YNNPAC
 The option is passed only where this jaxlib knows it (checked once, by compiling a trivial
 function); it changes nothing on other backends.
 
+``custom_calls`` and ``program_size`` read a program's size from its text (the compile benchmark,
+and the test that each heavy kernel of the solver's iteration is compiled once).
+
 ``use_persistent_cache``: compiled programs kept on disk (JAX's persistent compilation cache), so
 that a new process solving a problem structure solved before loads its programs instead of
 compiling them again (the command line's default).
 """
 
+import collections
 import functools
 import os
 import pathlib
+import re
 
 import jax
 from jax.experimental.compilation_cache import compilation_cache
@@ -100,3 +105,52 @@ def use_persistent_cache(directory=None, max_size=None, min_compile_seconds=1.0)
         jax.config.update("jax_compilation_cache_dir", str(path))
         compilation_cache.reset_cache()  # JAX opens its cache once; reopen it at the new place
     return path
+
+
+def custom_calls(lowered_text):
+    """{target: count} of the custom calls (LAPACK's ``lapack_dpotrf_ffi`` Cholesky, its
+    ``lapack_dtrsm_ffi`` triangular solves, …) in a lowered program's StableHLO text
+    (``jax.jit(f).lower(...).as_text()``), every call of a function counted with the calls
+    inside it: the number of copies XLA compiles, which inlines every call."""
+    bodies, current = {}, None
+    for line in lowered_text.splitlines():
+        found = re.match(r"\s*func\.func (?:public |private )?@([\w.$-]+)", line)
+        if found:
+            current = found.group(1)
+            bodies[current] = []
+        elif current is not None:
+            bodies[current].append(line)
+
+    @functools.cache
+    def count(function):
+        total = collections.Counter()
+        for line in bodies[function]:
+            total.update(re.findall(r"custom_call @(\w+)", line))
+            for callee in re.findall(r"(?<!custom_)call @([\w.$-]+)", line):
+                if callee in bodies:
+                    total += count(callee)
+        return total
+
+    return dict(count("main")) if "main" in bodies else {}
+
+
+_TRIVIAL = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast"}
+
+
+def program_size(compiled_text):
+    """(HLO instructions, kernels) of a compiled program's optimised HLO text
+    (``….compile().as_text()``): every instruction, and those outside fusion bodies that run
+    as an operation of their own (fusions, custom calls, dots, copies, loops and their
+    parts; parameters, constants, tuples and bitcasts left out)."""
+    instructions = kernels = 0
+    fused = False
+    for line in compiled_text.splitlines():
+        header = re.match(r"\s*(?:ENTRY )?%?([\w.\-]+) .*\{\s*$", line)
+        if header and "=" not in line.split("{")[0]:
+            fused = header.group(1).startswith("fused_") or ".fused" in header.group(1)
+            continue
+        op = re.match(r"\s*(?:ROOT )?%?[\w.\-]+ = (?:\([^=]*?\)|\S+) ([\w\-]+)\(", line)
+        if op:
+            instructions += 1
+            kernels += (not fused) and op.group(1) not in _TRIVIAL
+    return instructions, kernels

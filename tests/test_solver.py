@@ -246,8 +246,9 @@ def test_slacks_start_at_the_rows_of_the_pushed_guess_and_every_slack_setting_re
     for slack_start, ipopt_slacks in (("guess", False), ("pushed", False), ("pushed", True)):
         options = dataclasses.replace(OPTIONS, slack_start=slack_start, ipopt_slacks=ipopt_slacks)
         state = ip.start(nlp, Z0, jnp.zeros(1), options)
-        rows_at_start = stagewise.residuals(nlp, state.P[0], state.P[1]).path_inequality * state.scaling[1][2]
-        assert np.allclose(state.P[2], rows_at_start, rtol=1e-12) == (slack_start == "pushed")
+        P = state.iterate.P
+        rows_at_start = stagewise.residuals(nlp, P[0], P[1]).path_inequality * state.scaling[1][2]
+        assert np.allclose(P[2], rows_at_start, rtol=1e-12) == (slack_start == "pushed")
         solutions.append(solve(nlp, Z0, jnp.zeros(1), options=options))
         assert ip.Status(int(solutions[-1].status)) is ip.Status.CONVERGED
     for other in solutions[1:]:
@@ -442,17 +443,17 @@ def test_a_filter_that_rejects_every_trial_leaves_the_soft_restoration_step():
     for soft_steps in (0, 10):
         options = dataclasses.replace(OPTIONS, max_filter_resets=0, max_soft_steps=soft_steps)
         state = advance(nlp, ip.start(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options), options, 2)
-        blocked = dataclasses.replace(state, filter_theta=state.filter_theta.at[state.filter_count].set(0.0),
-                                      filter_phi=state.filter_phi.at[state.filter_count].set(-jnp.inf),
-                                      filter_count=state.filter_count + 1)
+        f = state.filter
+        blocked = dataclasses.replace(state, filter=dataclasses.replace(
+            f, theta=f.theta.at[f.count].set(0.0), phi=f.phi.at[f.count].set(-jnp.inf), count=f.count + 1))
         after = advance(nlp, blocked, options, 3)
         step = float(after.history[2, ip.HISTORY_COLUMNS.index("step_length")])
         if soft_steps == 0:
-            assert step == 0.0 and int(after.rejections) == 1 and int(after.soft_steps) == 0
+            assert step == 0.0 and int(after.counters.rejections) == 1 and int(after.counters.soft_steps) == 0
             continue
-        assert step > 0.0 and int(after.rejections) == 0 and int(after.soft_steps) == 1
-        assert int(after.filter_count) == int(blocked.filter_count) + 1
-        assert float(after.filter_theta[blocked.filter_count]) > 0.0  # the point left, with IPOPT's margins
+        assert step > 0.0 and int(after.counters.rejections) == 0 and int(after.counters.soft_steps) == 1
+        assert int(after.filter.count) == int(blocked.filter.count) + 1
+        assert float(after.filter.theta[blocked.filter.count]) > 0.0  # the point left, with IPOPT's margins
         solution = ip.finish(nlp, advance(nlp, after, options, options.max_iterations))
         assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
         np.testing.assert_allclose(solution.Z, reference.Z, atol=1e-6)

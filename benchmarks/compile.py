@@ -1,0 +1,167 @@
+"""How long a solve takes to compile, and how large its compiled iteration is, per scenario;
+with --compare REV, the same for another commit in the same run, side by side.
+
+For each scenario (``tasks.scenario(name)`` on the default assembled iRonCub at its published N,
+or --knots) and each revision, two fresh processes pinned to one core measure the iterations
+program every solve runs (``programs.advance``, options ``programs.DEFAULT_OPTIONS``):
+
+* cold, with an empty persistent compilation cache: the time to trace and lower the program
+  (``.trace(...).lower()``), XLA's compile time (``.compile()``), the size of the compiled
+  program (``compilation.program_size``: HLO instructions in its optimised text, and kernels,
+  the instructions outside fusion bodies that run as an operation of their own), the Cholesky
+  factorisations and triangular solves (LAPACK custom calls) in the lowered program with every
+  call inlined (``compilation.custom_calls``), and the time per iteration (median of
+  --repeats runs of iterations --skip to --skip + --iterations from the published guess);
+* warm, a second process with the cache the first one filled: the wall time from the first
+  call of the solve's programs (``programs.start``, then ``programs.advance`` for one iteration)
+  to the end of that first iteration: tracing, lowering, loading from the cache, one iteration.
+
+--compare REV checks REV out into a temporary git worktree and runs the same two processes with
+that worktree's ``jaxmm`` (REV needs ``jaxmm.programs``, whose ``start``/``advance`` these calls
+use). XLA runs with its default optimisation flags unless $XLA_FLAGS says otherwise (the header
+prints it).
+
+Usage: python benchmarks/compile.py [--scenarios take_off,jumping,walk_to_fly,take_off_and_landing]
+       [--knots N] [--compare REV] [--skip 20] [--iterations 10] [--repeats 3]
+"""
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+
+from machine import format_time, log, machine_lines, render
+
+from jaxmm import compilation  # the size of a program from its text (this tree's, for every revision)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SCENARIOS = ("take_off", "jumping", "walk_to_fly", "take_off_and_landing")
+
+# The measurement, run in a fresh process with the revision's jaxmm first on sys.path; prints one
+# JSON line. Kept to the calls every revision with ``jaxmm.programs`` has.
+PROBE = r'''
+import json, pathlib, sys, time
+t_import = time.perf_counter()
+mode, name, knots, skip, iterations, repeats, cache, texts = sys.argv[1:9]
+import jax, numpy as np
+import jaxmm
+from jaxmm import compilation, programs, tasks
+from jaxmm.solver import interior_point as ip
+compilation.use_persistent_cache(cache, min_compile_seconds=0.0)
+task = tasks.scenario(name) if knots == "0" else tasks.scenario(name, knots=int(knots))
+guess, started, m, b = programs.prepare(task, tasks.initial_guess(task), programs.DEFAULT_OPTIONS)
+options = ip.iteration_options(started)  # what solve_task iterates with
+out = dict(knots=task.n_knots)
+
+if mode == "cold":
+    state = jax.block_until_ready(programs.start(task, guess, started, m, b))
+    t0 = time.perf_counter()
+    lowered = programs.advance.trace(task, state, options, int(skip)).lower()
+    t1 = time.perf_counter()
+    compiled = lowered.compile()
+    t2 = time.perf_counter()
+    pathlib.Path(texts, "lowered.txt").write_text(lowered.as_text())
+    pathlib.Path(texts, "compiled.txt").write_text(compiled.as_text())
+    out.update(trace_lower=t1 - t0, compile=t2 - t1)
+    at = jax.block_until_ready(compiled(task, state, int(skip)))
+    times = []
+    for _ in range(int(repeats)):
+        t = time.perf_counter()
+        after = jax.block_until_ready(compiled(task, at, int(skip) + int(iterations)))
+        times.append(time.perf_counter() - t)
+    done = int(after.iterations) - int(at.iterations)
+    out.update(per_iteration=float(np.median(times)) / max(done, 1), iterations=done)
+else:
+    t0 = time.perf_counter()
+    state = programs.start(task, guess, started, m, b)
+    first = jax.block_until_ready(programs.advance(task, state, options, 1))
+    out.update(first_iteration=time.perf_counter() - t0, import_seconds=t_import)
+print("PROBE " + json.dumps(out))
+'''
+
+
+def probe(source, mode, name, args, cache, texts):
+    """Run PROBE with the jaxmm of ``source`` (a directory) on one core; returns its JSON (the
+    cold probe leaves the program's lowered and compiled texts in the directory ``texts``)."""
+    environment = dict(os.environ, PYTHONPATH=str(source), OPENBLAS_NUM_THREADS="1")
+    command = ["taskset", "-c", "0", sys.executable, "-c", PROBE, mode, name, str(args.knots or 0), str(args.skip),
+               str(args.iterations), str(args.repeats), str(cache), str(texts)]
+    result = subprocess.run(command, env=environment, capture_output=True, text=True, cwd=source)
+    lines = [line for line in result.stdout.splitlines() if line.startswith("PROBE ")]
+    if result.returncode or not lines:
+        raise RuntimeError(f"the {mode} probe of {name} at {source} failed:\n{result.stderr[-3000:]}")
+    return json.loads(lines[-1][len("PROBE "):])
+
+
+def measure(source, label, name, args):
+    """Both probes of one scenario for one revision: a row of the table."""
+    with tempfile.TemporaryDirectory(prefix="jaxmm-compile-cache-") as cache, \
+            tempfile.TemporaryDirectory(prefix="jaxmm-compile-texts-") as texts:
+        log(f"{label} {name}: cold")
+        cold = probe(source, "cold", name, args, cache, texts)
+        log(f"{label} {name}: cache hit")
+        warm = probe(source, "warm", name, args, cache, texts)
+        calls = compilation.custom_calls(pathlib.Path(texts, "lowered.txt").read_text())
+        size = compilation.program_size(pathlib.Path(texts, "compiled.txt").read_text())
+    return dict(cold, **warm, hlo=size, cholesky=calls.get("lapack_dpotrf_ffi", 0),
+                triangular=calls.get("lapack_dtrsm_ffi", 0))
+
+
+def revision(rev):
+    """The commit hash of ``rev`` in this repository."""
+    return subprocess.run(["git", "rev-parse", "--short", rev], cwd=ROOT, capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenarios", default=",".join(SCENARIOS))
+    parser.add_argument("--knots", type=int, default=None, help="knot count of every scenario (default: published)")
+    parser.add_argument("--compare", default=None, metavar="REV", help="another commit, measured in the same run")
+    parser.add_argument("--skip", type=int, default=20)
+    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    names = [s for s in args.scenarios.split(",") if s]
+    unknown = sorted(set(names) - set(SCENARIOS))
+    if unknown:
+        parser.error(f"unknown scenarios {unknown}; known: {', '.join(SCENARIOS)}")
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                           text=True).stdout.strip()
+    sources = [(f"{revision('HEAD')}{' + changes' if dirty else ''}", ROOT)]
+    with tempfile.TemporaryDirectory(prefix="jaxmm-compare-") as scratch:
+        if args.compare:
+            other = pathlib.Path(scratch) / "tree"
+            subprocess.run(["git", "worktree", "add", "--detach", str(other), args.compare], cwd=ROOT, check=True,
+                           capture_output=True)
+            sources.append((revision(args.compare), other))
+        try:
+            rows = []
+            for name in names:
+                results = [(label, measure(source, label, name, args)) for label, source in sources]
+                base = results[-1][1]
+                for label, r in results:
+                    ratio = lambda key: f" ({r[key] / base[key]:.2f}×)" if len(results) > 1 else ""  # noqa: E731
+                    rows.append((name, r["knots"], label, format_time(r["trace_lower"]) + ratio("trace_lower"),
+                                 format_time(r["compile"]) + ratio("compile"), f"{r['hlo'][0]:,}", f"{r['hlo'][1]:,}",
+                                 f"{r['cholesky']} / {r['triangular']}",
+                                 format_time(r["first_iteration"]) + ratio("first_iteration"),
+                                 format_time(r["per_iteration"]) + ratio("per_iteration")))
+        finally:
+            if args.compare:
+                subprocess.run(["git", "worktree", "remove", "--force", str(other)], cwd=ROOT, capture_output=True)
+    print("\n".join(machine_lines(["jax", "jaxlib"])))
+    print(f"XLA_FLAGS: {os.environ.get('XLA_FLAGS', '(unset: XLA defaults)')}; one core per process; iterations "
+          f"{args.skip}–{args.skip + args.iterations} for the time per iteration, median of {args.repeats}\n")
+    header = ("scenario", "N", "revision", "trace + lower", "XLA compile", "HLO instructions", "kernels",
+              "Cholesky / triangular solves", "cache hit → first iteration", "per iteration")
+    print(render(header, rows))
+    if len(sources) > 1:
+        print(f"\nRatios: {sources[0][0]} / {sources[1][0]}.")
+
+
+if __name__ == "__main__":
+    main()

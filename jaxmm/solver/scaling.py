@@ -1,0 +1,89 @@
+"""The NLP as the solver sees it: IPOPT's gradient-based scaling of the cost and of every row
+(no gradient above ``Options.max_gradient``, fixed at the starting point), the inequality rows as
+equalities g − s = 0 with a slack s, and the constraint violation in the NLP's own units."""
+
+import dataclasses
+
+import jax.numpy as jnp
+
+from jaxmm import stagewise
+from jaxmm.solver import barrier, rows
+from jaxmm.solver.options import GROUPS
+
+
+def outside(value, lower, upper):
+    """Distance of value to [lower, upper] (0 inside)."""
+    return jnp.maximum(jnp.maximum(lower - value, value - upper), 0.0)
+
+
+def violation(nlp, Z, theta, r=None):
+    """Max constraint violation over every group (the NLP's units) and per group; ``r``: the
+    residuals at (Z, θ) when they are at hand."""
+    r = stagewise.residuals(nlp, Z, theta) if r is None else r
+    groups = dict(
+        path_equality=jnp.abs(r.path_equality),
+        transition_equality=jnp.abs(r.transition_equality),
+        path_inequality=outside(r.path_inequality, nlp.path_lower, nlp.path_upper),
+        transition_inequality=outside(r.transition_inequality, nlp.transition_lower, nlp.transition_upper),
+        z_box=outside(Z, nlp.z_lower, nlp.z_upper),
+        theta_box=outside(theta, nlp.theta_lower, nlp.theta_upper),
+    )
+    per_group = {k: jnp.max(v, initial=0.0) for k, v in groups.items()}
+    return jnp.max(jnp.stack(list(per_group.values()))), per_group
+
+
+def row_scale(r, max_gradient):
+    """IPOPT's gradient-based row scaling: min(1, max_gradient / ‖∇cᵢ‖∞) per row of the ``Rows`` r."""
+    largest = jnp.maximum(jnp.max(jnp.abs(r.jz), axis=-1, initial=0.0), jnp.max(jnp.abs(r.jt), axis=-1, initial=0.0))
+    if r.jn is not None:
+        largest = jnp.maximum(largest, jnp.max(jnp.abs(r.jn), axis=-1, initial=0.0))
+    return jnp.minimum(1.0, max_gradient / jnp.maximum(largest, 1e-300))
+
+
+def scaling(nlp, Z0, theta0, options):
+    """(cost factor, per-row factors of the four groups) at the starting point: IPOPT's
+    gradient-based scaling, no row or cost gradient above options.max_gradient."""
+    B0 = stagewise.blocks(nlp, Z0, theta0)
+    cost_scale = jnp.minimum(1.0, options.max_gradient / jnp.maximum(
+        jnp.maximum(jnp.max(jnp.abs(B0.cost_z)), jnp.max(jnp.abs(B0.cost_theta))), 1e-300))
+    return cost_scale, tuple(row_scale(rows.group_rows(B0, g), options.max_gradient) for g in GROUPS)
+
+
+@dataclasses.dataclass(frozen=True)
+class ScaledProblem:
+    """The stage-wise ``nlp`` in the solver's units: cost × cost_scale, rows × row_scale (the
+    four groups' (R, m) factors), inequality rows g − s with the slacks s in scaled units;
+    ``active``: the inequality rows with a finite bound (the others constrain nothing: their
+    slack follows g); ``bounds``: the primal leaves' ``barrier.Bounds``."""
+
+    nlp: stagewise.StagewiseNLP
+    cost_scale: jnp.ndarray
+    row_scale: tuple
+    active: tuple
+    bounds: barrier.Bounds
+
+    def constraints(self, P, r):
+        """The scaled equality residuals (c, g − s) of the four groups at P = (Z, θ, slacks),
+        from the NLP's residuals r there."""
+        s = self.row_scale
+        return (
+            r.path_equality * s[0],
+            r.transition_equality * s[1],
+            (r.path_inequality * s[2] - P[2]) * self.active[0],
+            (r.transition_inequality * s[3] - P[3]) * self.active[1],
+        )
+
+    def evaluate(self, P):
+        """(scaled cost, scaled residuals (``constraints``), the NLP's ``stagewise.Residuals``) at P."""
+        r = stagewise.residuals(self.nlp, P[0], P[1])
+        return self.cost_scale * r.cost, self.constraints(P, r), r
+
+
+def scaled_problem(nlp, factors):
+    """The ``ScaledProblem`` of ``nlp`` with factors = (cost factor, per-row factors)."""
+    cost_scale, row_factors = factors[0], tuple(factors[1])
+    active = (
+        jnp.broadcast_to(jnp.isfinite(nlp.path_lower) | jnp.isfinite(nlp.path_upper), row_factors[2].shape),
+        jnp.broadcast_to(jnp.isfinite(nlp.transition_lower) | jnp.isfinite(nlp.transition_upper), row_factors[3].shape),
+    )
+    return ScaledProblem(nlp, cost_scale, row_factors, active, barrier.bounds(nlp, row_factors[2:]))

@@ -1,0 +1,64 @@
+"""The solver's iteration program holds each heavy kernel once: the block factorisation and the
+block solve appear at one call site per iteration (in the normal step, the second-order
+corrections, soft restoration, the restoration phase and iterative refinement alike), and so
+the Cholesky factorisations and triangular solves that XLA compiles (every call inlined) are
+exactly those of one ``linalg.factor`` and one ``linalg.solve``. A change that inlines a second
+copy of either makes these counts grow."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmm  # noqa: F401  (float64)
+from jaxmm import compilation
+from jaxmm.solver import interior_point as ip
+from jaxmm.solver import linalg
+from test_solver import CAPPED, K, integrator
+
+CHOLESKY, TRIANGULAR = "lapack_dpotrf_ffi", "lapack_dtrsm_ffi"
+
+
+def lapack_calls(fn, *args, **static):
+    return compilation.custom_calls(jax.jit(fn, static_argnames=tuple(static)).lower(*args, **static).as_text())
+
+
+def one_factor_and_one_solve(n, ng):
+    """The LAPACK calls of one ``linalg.factor`` and one ``linalg.solve`` of K blocks of n with
+    ng globals."""
+    D, L = jnp.eye(n)[None].repeat(K, 0), jnp.zeros((K - 1, n, n))
+    B, C = jnp.zeros((K, n, ng)), jnp.eye(ng)
+    factor = lapack_calls(linalg.factor, D, L, B, C)
+    chol = linalg.factor(D, L, B, C)
+    solve = lapack_calls(linalg.solve, chol, jnp.zeros((K, n)), jnp.zeros(ng))
+    return {name: factor.get(name, 0) + solve.get(name, 0) for name in (CHOLESKY, TRIANGULAR)}
+
+
+@pytest.mark.parametrize("restoration", [True, False], ids=["with restoration phase", "without"])
+def test_the_iteration_factors_and_solves_at_one_call_site_each(restoration):
+    nlp = integrator(CAPPED, energy_cap=0.01)
+    options = dataclasses.replace(ip.Options(), max_restoration_iterations=100 if restoration else 0)
+    state = ip.start(nlp, jnp.zeros((K, 3)), jnp.zeros(1), options)
+    calls = lapack_calls(lambda nlp, state: ip.advance(nlp, state, options, 3), nlp, state)
+    expected = one_factor_and_one_solve(3, 1)
+    assert expected[CHOLESKY] > 0 and expected[TRIANGULAR] > 0
+    assert {name: calls.get(name, 0) for name in expected} == expected
+
+
+def test_the_counter_sees_every_copy_of_an_inlined_call():
+    """Two calls of the same jitted function count twice, as XLA compiles them."""
+    factor = jax.jit(jnp.linalg.cholesky)
+    A = jnp.eye(3)
+    once = compilation.custom_calls(jax.jit(lambda a: factor(a)).lower(A).as_text())
+    twice = compilation.custom_calls(jax.jit(lambda a: factor(a) + factor(2 * a)).lower(A).as_text())
+    assert twice[CHOLESKY] == 2 * once[CHOLESKY] == 2
+
+
+def test_the_program_size_counts_instructions_and_kernels():
+    instructions, kernels = compilation.program_size(jax.jit(lambda x: jnp.sin(x) @ x).lower(jnp.eye(3)).compile().as_text())
+    assert instructions >= kernels >= 1
+    bigger = compilation.program_size(jax.jit(lambda x: jnp.linalg.cholesky(jnp.sin(x) @ x.T + 3 * jnp.eye(3)))
+                                      .lower(jnp.eye(3)).compile().as_text())
+    assert bigger[0] > instructions and np.isfinite(bigger[1])
