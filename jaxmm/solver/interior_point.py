@@ -294,8 +294,9 @@ def iteration(ctx, state):
     # 1.4–4100× the least that factors (median 5×; the need swings by 1000× between
     # iterations): 702 iterations against 243 with 1e-3 (docs/design-decisions.md, κ_w⁻).
     delta_w, chol, factored, work = newton.factor(
-        blocks_at, diagonal_at, jnp.where(restoring, 0.0, state.forced), state.regularisation, ~restoring,
-        options.regularisation_decrease, ctx.K, ctx.coupled)
+        blocks_at, diagonal_at, jnp.where(restoring, 0.0, state.forced),
+        lambda delta: newton.next_regularisation(delta, state.regularisation, options.regularisation_decrease),
+        ~restoring, 1e40, ctx.K, ctx.coupled)
     system = system_at(delta_w)
     limit = jnp.where(restoring, 1, 1 + REFINEMENT_STEPS)
 

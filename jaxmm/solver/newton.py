@@ -105,23 +105,24 @@ def next_regularisation(delta, last, decrease):
     return jnp.where(delta == 0.0, jnp.where(last == 0.0, 1e-4, resumed), delta * jnp.where(last == 0.0, 100.0, 8.0))
 
 
-def factor(blocks_at, diagonal_at, first, last, correct, decrease, K, coupled):
+def factor(blocks_at, diagonal_at, first, grow, correct, ceiling, K, coupled=None):
     """The inertia correction: factor ``blocks_at(δ)`` (fixed-out blocks (D, L, B, C)) with the
-    diagonal ``diagonal_at(δ)`` ((K, nz), (ng,)) added, from δ = first, growing δ by
-    ``next_regularisation`` while the factorisation fails and ``correct`` holds (up to 1e40).
-    Every attempt runs at this one call site of ``linalg.factor``.
+    diagonal ``diagonal_at(δ)`` ((K, nz), (ng,)) added, from δ = first, δ ← grow(δ) while the
+    factorisation fails, ``correct`` holds and δ < ceiling. Every attempt runs at this one call
+    site of ``linalg.factor`` (the interior-point iteration's, with ``next_regularisation``, and
+    the sensitivity's preconditioner, with its own growth).
 
-    Returns (δ_w, the factor, whether it factored, the diagonal blocks factored over all attempts)."""
+    Returns (δ, the factor, whether it factored, the diagonal blocks factored over all attempts)."""
 
     def attempt(delta):
         shift, corner_shift = diagonal_at(delta)
         return linalg.factor(*blocks_at(delta), coupled=coupled, shift=shift, corner_shift=corner_shift)
 
     def needs_more(s):
-        return ~s.tried | (correct & ~s.ok & (s.delta < 1e40))
+        return ~s.tried | (correct & ~s.ok & (s.delta < ceiling))
 
     def more(s):
-        delta = jnp.where(s.tried, next_regularisation(s.delta, last, decrease), first)
+        delta = jnp.where(s.tried, grow(s.delta), first)
         chol = attempt(delta)
         return Correction(delta, chol, chol.ok, s.work + attempted(chol, K), jnp.asarray(True))
 

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmm.solver import interior_point as ip
-from jaxmm.solver import linalg, rows
+from jaxmm.solver import linalg, newton, rows
 from jaxmm import stagewise
 
 GROUPS = ip.GROUPS
@@ -356,25 +356,15 @@ def _kkt(nlp, Z, theta, y, barrier, options):
     weights = [1.0 / (d + 1.0 / options.penalty) for d in row_diagonal]
     D, L, Bd, C = rows.grams(jacobians, weights, K, into=hessian)
 
-    def attempt(delta):
-        return linalg.factor(D + jax.vmap(jnp.diag)(1 - free_z + delta * free_z), L, Bd,
-                             C + jnp.diag(1 - free_t + delta * free_t))
-
     # The factor only preconditions GMRES, which solves the unregularised system: a shift δ I on
     # F costs iterations, not accuracy. Pivots of the condensed matrix below ≈ ρ ε (1e-8 at ρ = 1e8)
     # are rounding, so δ starts there: on iRonCub's take-off, whose reduced Hessian has flat
     # directions (eigenvalues −3e-12 relative), δ = 1e-10 left the preconditioner nearly
     # singular and GMRES at a residual of 8e-5 after 10 cycles; δ = 1e-8 reached 1e-10.
-    def needs_more(carry):
-        delta, chol = carry
-        return ~chol.ok & (delta < options.max_regularisation)
-
-    def grow(carry):
-        delta, _ = carry
-        return 10 * delta, attempt(10 * delta)
-
-    delta0 = jnp.asarray(options.min_regularisation, Z.dtype)
-    delta, chol = jax.lax.while_loop(needs_more, grow, (delta0, attempt(delta0)))
+    delta, chol, _, _ = newton.factor(
+        lambda delta: (D, L, Bd, C), lambda delta: (1 - free_z + delta * free_z, 1 - free_t + delta * free_t),
+        jnp.asarray(options.min_regularisation, Z.dtype), lambda delta: 10 * delta, jnp.asarray(True),
+        options.max_regularisation, K)
     # Active bounds put Σ ≈ λ²/μ (up to 1e20) on the diagonal; without a symmetric diagonal
     # scaling, a residual relative to such entries says nothing about the O(1) rows.
     def jacobi(diagonal):
