@@ -74,6 +74,9 @@ if mode == "cold":
         times.append(time.perf_counter() - t)
     done = int(after.iterations) - int(at.iterations)
     out.update(per_iteration=float(np.median(times)) / max(done, 1), iterations=done)
+    # The calls a solve makes, so that whatever a revision keeps on disk besides JAX's cache
+    # (jaxmm's executable store) is there for the warm probe.
+    jax.block_until_ready(programs.advance(task, programs.start(task, guess, started, m, b), options, 1))
 else:
     t0 = time.perf_counter()
     state = programs.start(task, guess, started, m, b)
@@ -86,7 +89,8 @@ print("PROBE " + json.dumps(out))
 def probe(source, mode, name, args, cache, texts):
     """Run PROBE with the jaxmm of ``source`` (a directory) on one core; returns its JSON (the
     cold probe leaves the program's lowered and compiled texts in the directory ``texts``)."""
-    environment = dict(os.environ, PYTHONPATH=str(source), OPENBLAS_NUM_THREADS="1")
+    path = os.pathsep.join(p for p in (str(source), os.environ.get("PYTHONPATH", "")) if p)
+    environment = dict(os.environ, PYTHONPATH=path, OPENBLAS_NUM_THREADS="1")
     command = ["taskset", "-c", "0", sys.executable, "-c", PROBE, mode, name, str(args.knots or 0), str(args.skip),
                str(args.iterations), str(args.repeats), str(cache), str(texts)]
     result = subprocess.run(command, env=environment, capture_output=True, text=True, cwd=source)

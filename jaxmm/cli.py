@@ -14,7 +14,8 @@ or a Ctrl-C stops the solve with its last iterate, which is written like any oth
 
 Compiled programs are kept on disk (``jaxmm.compilation.use_persistent_cache``; ``--cache-dir``,
 default ``~/.cache/jaxmm/xla``, or ``$JAX_COMPILATION_CACHE_DIR`` when set; ``--no-cache``): the
-first solve of a scenario at a knot count compiles, the next ones load the programs.
+first solve of a scenario at a knot count compiles, the next ones load the programs (without
+tracing them: ``jaxmm.compilation.ExecutableStore``).
 """
 
 import argparse

@@ -11,16 +11,28 @@ and the test that each heavy kernel of the solver's iteration is compiled once).
 
 ``use_persistent_cache``: compiled programs kept on disk (JAX's persistent compilation cache), so
 that a new process solving a problem structure solved before loads its programs instead of
-compiling them again (the command line's default).
+compiling them again (the command line's default). Where JAX's cache is on, jaxmm's own programs
+(``jit``) are also kept as executables under a key computed from their arguments' structure
+without tracing them (``ExecutableStore``): JAX's cache key is a hash of the lowered program, so
+each of its hits still traces and lowers the program (seconds for a solver iteration), which
+this store skips.
 """
 
 import collections
+import dataclasses
 import functools
+import hashlib
+import inspect
 import os
 import pathlib
+import pickle
 import re
 
 import jax
+import jax.numpy as jnp
+import jaxlib
+import numpy as np
+from jax.experimental import serialize_executable
 from jax.experimental.compilation_cache import compilation_cache
 
 _OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}  # "": no YNNPACK fusions
@@ -39,11 +51,15 @@ def compiler_options():
 class _Jitted:
     """A ``jax.jit`` of ``fn`` with ``compiler_options`` where it is compiled on its own, built
     at its first use (asking for the options compiles, so not at import); a plain one where it
-    is traced inside another function (JAX takes options only from the outermost jit)."""
+    is traced inside another function (JAX takes options only from the outermost jit). Called
+    on values while JAX's persistent cache is on, it runs the executable of ``compiled``."""
 
     def __init__(self, fn, kwargs):
         self._fn, self._kwargs = fn, kwargs
         self._nested = jax.jit(fn, **kwargs)
+        static = kwargs.get("static_argnames", ())
+        self._static = (static,) if isinstance(static, str) else tuple(static)
+        self._signature = inspect.signature(fn)
         functools.update_wrapper(self, fn)
 
     @functools.cached_property
@@ -52,12 +68,97 @@ class _Jitted:
 
     def __call__(self, *args, **kwargs):
         traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((args, kwargs)))
-        return (self._nested if traced else self._jitted)(*args, **kwargs)
+        if traced:
+            return self._nested(*args, **kwargs)
+        if store() is None:
+            return self._jitted(*args, **kwargs)
+        return self.compiled(*args, **kwargs)(*args, **kwargs)
+
+    def compiled(self, *args, **kwargs):
+        """The ``Program`` compiled for arguments like these (values, or ``jax.ShapeDtypeStruct``
+        leaves): from this process's memory, else from the ``ExecutableStore`` where JAX's
+        persistent cache is on, else lowered and compiled (through JAX's cache) and kept in both."""
+        arguments, statics = self._split(args, kwargs)
+        leaves, treedef = jax.tree.flatten(arguments)
+        key = (self._fn, treedef, statics, tuple(_leaf_type(leaf) for leaf in leaves))
+        if key not in _LOADED:
+            _LOADED[key] = Program(self, _load_or_compile(self, arguments, statics, leaves, treedef))
+        return _LOADED[key]
+
+    def _split(self, args, kwargs):
+        """({name: value} of the non-static arguments, defaults filled in; ((name, value), …) of
+        the static ones)."""
+        bound = self._signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        arguments = dict(bound.arguments)
+        return arguments, tuple((name, arguments.pop(name)) for name in self._static)
 
     def __getattr__(self, name):  # lower, eval_shape, trace, …: those of the jax.jit
         if name.startswith("__") or name in ("_fn", "_kwargs"):
             raise AttributeError(name)
         return getattr(self._jitted, name)
+
+
+class Program:
+    """A compiled program of ``jit``: called with the function's arguments (static ones
+    included, and ignored); ``out_info``: the ``jax.ShapeDtypeStruct`` tree of its result."""
+
+    def __init__(self, jitted, executable):
+        self._jitted, self._executable = jitted, executable
+
+    @property
+    def out_info(self):
+        return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), self._executable.out_info)
+
+    def __call__(self, *args, **kwargs):
+        return self._executable(**self._jitted._split(args, kwargs)[0])
+
+
+def _leaf_type(x):
+    """(shape, dtype, weak type) of an argument's leaf: an array, a Python number or a
+    ``jax.ShapeDtypeStruct``."""
+    weak = x.weak_type if isinstance(x, jax.ShapeDtypeStruct) else jax.typeof(x).weak_type
+    return np.shape(x), str(jnp.result_type(x)), bool(weak)
+
+
+# The executables of ``_Jitted.compiled`` this process holds, by (function, argument structure,
+# static arguments, argument types); ``clear_programs`` drops them.
+_LOADED = {}
+
+
+def clear_programs():
+    """Drop the compiled programs this process holds (``jax.clear_caches`` for JAX's own): each
+    holds thousands of memory mappings. Later calls load them again from the disk caches."""
+    _LOADED.clear()
+
+
+def _load_or_compile(jitted, arguments, statics, leaves, treedef):
+    """The executable of ``jitted`` for these (non-static) ``arguments``, by keyword: loaded
+    from the store where it has it, else compiled and stored."""
+    place = store()
+    key = None if place is None else place.key(jitted._fn, treedef, statics, leaves)
+    executable = None if key is None else place.load(key)
+    if executable is None:
+        lowered = jitted._jitted.lower(**arguments, **dict(statics))
+        if key is None:
+            return lowered.compile()
+        executable = _compile_afresh(lowered)
+        place.save(key, executable)
+    return executable
+
+
+def _compile_afresh(lowered):
+    """``lowered.compile()`` with JAX's persistent cache off: an executable loaded from that
+    cache serialises without its kernels (XLA's CPU backend) and fails when run after being
+    loaded from the store; the store keeps these programs instead."""
+    enabled = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    compilation_cache.reset_cache()  # JAX decides once whether its cache is used
+    try:
+        return lowered.compile()
+    finally:
+        jax.config.update("jax_enable_compilation_cache", enabled)
+        compilation_cache.reset_cache()
 
 
 def jit(fn=None, **kwargs):
@@ -89,6 +190,10 @@ def use_persistent_cache(directory=None, max_size=None, min_compile_seconds=1.0)
     users should be able to write to the directory: JAX runs what it loads. Takes effect for
     programs compiled after the call (programs already in this process's memory are reused as
     they are).
+
+    jaxmm's own programs (``jit``: a solve's start, advance and finish) are kept apart, in
+    ``directory/executables`` (``ExecutableStore``), and loaded without being traced; the size
+    limit does not apply to them (one take-off N = 70 iteration program: ≈ 14 MB).
     """
     path = pathlib.Path(default_cache_directory() if directory is None else directory).expanduser()
     if path.exists() and not path.is_dir():
@@ -105,6 +210,101 @@ def use_persistent_cache(directory=None, max_size=None, min_compile_seconds=1.0)
         jax.config.update("jax_compilation_cache_dir", str(path))
         compilation_cache.reset_cache()  # JAX opens its cache once; reopen it at the new place
     return path
+
+
+class ExecutableStore:
+    """Compiled executables on disk, one file ``<key>.executable`` each in ``directory``, keyed
+    without tracing: by the function (module, name) and the source of the ``jaxmm`` package, the
+    structure of the arguments (pytree nodes and their static data), their shapes and dtypes,
+    the static arguments, and everything else a program depends on (JAX and jaxlib versions,
+    backend and devices, ``XLA_FLAGS``, jaxmm's compiler options, 64-bit mode). A key that
+    cannot be computed reliably (a static value whose text depends on the process, such as a
+    function's address) simply never hits. An entry that cannot be read is compiled again and
+    overwritten. Only trusted users should be able to write to ``directory``: JAX runs what it
+    loads."""
+
+    def __init__(self, directory):
+        self.directory = pathlib.Path(directory)
+
+    def key(self, fn, treedef, statics, leaves):
+        """The hex key of ``fn`` for arguments of structure ``treedef`` with these static
+        (name, value) pairs and array ``leaves``."""
+        digest = hashlib.sha256()
+        for part in (_environment(), fn.__module__, fn.__qualname__, _canonical(treedef), repr(statics),
+                     [_leaf_type(x) for x in leaves]):
+            digest.update(repr(part).encode())
+            digest.update(b"\0")
+        return digest.hexdigest()
+
+    def load(self, key):
+        """The executable stored under ``key``, or None (absent, or unreadable)."""
+        path = self.directory / f"{key}.executable"
+        try:
+            payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+            _initialise_custom_calls()
+            return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        except Exception:  # absent, half-written by another process, or from another build
+            return None
+
+    def save(self, key, executable):
+        """Store ``executable`` under ``key`` (atomically: written aside, then renamed); one
+        that cannot be serialised (a host callback in it) is left out."""
+        try:
+            blob = pickle.dumps(serialize_executable.serialize(executable))
+        except Exception:  # host callbacks (progress printing) are not serialisable
+            return
+        self.directory.mkdir(parents=True, exist_ok=True)
+        aside = self.directory / f"{key}.{os.getpid()}.partial"
+        aside.write_bytes(blob)
+        os.replace(aside, self.directory / f"{key}.executable")
+
+
+def store():
+    """The ``ExecutableStore`` in use: ``executables/`` inside JAX's persistent cache directory
+    while that cache is on (``use_persistent_cache``, ``$JAX_COMPILATION_CACHE_DIR``), else None."""
+    directory = jax.config.jax_compilation_cache_dir
+    return ExecutableStore(pathlib.Path(directory) / "executables") if directory else None
+
+
+@functools.cache
+def _environment():
+    """Everything besides the arguments that a compiled program of jaxmm depends on."""
+    package = pathlib.Path(__file__).resolve().parent
+    source = hashlib.sha256()
+    for path in sorted(package.rglob("*.py")):
+        source.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes())
+    devices = [(d.platform, d.device_kind) for d in jax.devices()]
+    return (source.hexdigest(), jax.__version__, jaxlib.__version__,
+            jax.default_backend(), devices, os.environ.get("XLA_FLAGS", ""), sorted(compiler_options().items()),
+            bool(jax.config.jax_enable_x64), str(jax.config.jax_default_matmul_precision))
+
+
+@functools.cache
+def _initialise_custom_calls():
+    """Lower one Cholesky factorisation: JAX registers its LAPACK kernels when it first lowers
+    one, and a loaded executable that calls them before that crashes the process."""
+    jax.jit(jnp.linalg.cholesky).lower(np.eye(1))
+
+
+def _canonical(value):
+    """A text of ``value`` (a pytree structure, its static data) that differs wherever the
+    value does: arrays by their bytes, containers item by item, other objects by ``repr``."""
+    if isinstance(value, jax.tree_util.PyTreeDef):
+        node, data = value.node_data() or (None, None)
+        return (f"{getattr(node, '__module__', '')}.{getattr(node, '__qualname__', repr(node))}", _canonical(data),
+                tuple(_canonical(child) for child in value.children()))
+    if isinstance(value, np.ndarray):
+        return ("array", value.dtype.str, value.shape, hashlib.sha256(np.ascontiguousarray(value).tobytes()).hexdigest())
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return (f"{type(value).__module__}.{type(value).__qualname__}",
+                tuple((f.name, _canonical(getattr(value, f.name))) for f in dataclasses.fields(value)))
+    if isinstance(value, (tuple, list)):
+        return (type(value).__name__, tuple(_canonical(v) for v in value))
+    if isinstance(value, dict):
+        return ("dict", tuple((repr(k), _canonical(v)) for k, v in value.items()))
+    if isinstance(value, frozenset):
+        return ("frozenset", tuple(sorted(repr(_canonical(v)) for v in value)))
+    return repr(value)
 
 
 def custom_calls(lowered_text):

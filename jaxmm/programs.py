@@ -154,19 +154,18 @@ def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *,
     solve includes no compiling)."""
     guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
     stopping.check_budget(time_budget)
-    started = start.lower(task, guess, options, multipliers, bound_multipliers).compile()
-    state = jax.eval_shape(lambda *arguments: start(*arguments[:2], options, *arguments[2:]), task, guess, multipliers,
-                           bound_multipliers)
-    options = ip.iteration_options(options)
-    advanced = advance.lower(task, state, options, options.max_iterations).compile()
-    finished = finish.lower(task, state, int(ip.Status.MAX_ITERATIONS)).compile()
+    started = start.compiled(task, guess, options, multipliers, bound_multipliers)
+    state = started.out_info
+    iterating = ip.iteration_options(options)
+    advanced = advance.compiled(task, state, iterating, iterating.max_iterations)
+    finished = finish.compiled(task, state, int(ip.Status.MAX_ITERATIONS))
 
     def solve(other=None):
         if other is not None:
             check_guess(task, other)
-        state = started(task, guess if other is None else other, multipliers, bound_multipliers)
-        return run(state, lambda s, until: advanced(task, s, until), lambda s, stopped: finished(task, s, stopped),
-                   options.max_iterations, time_budget, interruptible)
+        state = started(task, guess if other is None else other, options, multipliers, bound_multipliers)
+        return run(state, lambda s, until: advanced(task, s, iterating, until),
+                   lambda s, stopped: finished(task, s, stopped), iterating.max_iterations, time_budget, interruptible)
 
     return solve
 

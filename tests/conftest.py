@@ -51,6 +51,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import jaxmm  # noqa: E402
+from jaxmm import compilation  # noqa: E402
 from jaxmm.rigid_body import so3  # noqa: E402
 
 # Compiled programs persist on disk, so the test processes (xdist workers, notebook kernels) that
@@ -157,6 +158,7 @@ def free_compiled_programs():
     65,530 (Linux's default ``vm.max_map_count``): a worker that had run several solver files
     fails to compile the next with LLVM's "Cannot allocate memory" and dies. What is needed later is loaded again from the persistent cache."""
     jax.clear_caches()
+    compilation.clear_programs()
     gc.collect()
 
 

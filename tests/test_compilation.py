@@ -1,6 +1,8 @@
 """``jaxmm.compilation.jit``: jaxmm's programs compiled with its XLA options, usable anywhere
 ``jax.jit`` is."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -50,7 +52,7 @@ def test_nested_in_other_transformations():
     np.testing.assert_array_equal(jax.grad(lambda x: f(x, 2))(x), 2 * x)
     assert jax.eval_shape(lambda x: f(x, 2), x).shape == ()
     assert f.__doc__ == "x to the power." and f.__name__ == "f"
-    assert f._cache_size() == 1  # what jax.jit offers is there (lower, _cache_size, …)
+    assert float(f.lower(x, 2).compile()(x)) == 14.0  # what jax.jit offers is there (lower, trace, …)
 
 
 @pytest.fixture
@@ -97,3 +99,70 @@ def test_default_cache_directory_follows_the_environment(tmp_path, monkeypatch):
     assert compilation.default_cache_directory() == tmp_path / "jaxmm" / "xla"
     monkeypatch.setenv("JAXMM_CACHE_DIR", str(tmp_path / "mine"))
     assert compilation.default_cache_directory() == tmp_path / "mine"
+
+
+TRACES = []
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _Scaled:
+    """An argument whose static field is part of the program, not an input."""
+
+    x: jax.Array
+    factors: tuple = dataclasses.field(metadata=dict(static=True))
+
+
+@compilation.jit(static_argnames=("power", "progress"))
+def _traced(a, power, progress=False):
+    TRACES.append(power)
+    if progress:
+        jax.debug.callback(lambda v: None, a.x)
+    return jnp.sum(a.x**power * jnp.asarray(a.factors))
+
+
+def _stored(directory):
+    return sorted(p.name for p in (directory / "executables").glob("*.executable"))
+
+
+def test_executable_store_loads_programs_without_tracing_them(tmp_path, jax_cache_settings):
+    """With the persistent cache on, a program of ``compilation.jit`` is stored as an executable
+    and, once this process's programs are dropped (as a new process starts), loaded from the
+    store without being traced again; another shape, static argument or static field of an
+    argument is another program."""
+    compilation.use_persistent_cache(tmp_path, min_compile_seconds=0)
+    a = _Scaled(jnp.arange(1.0, 4.0), (1.0, 2.0, 3.0))
+    TRACES.clear()
+    assert float(_traced(a, 2)) == 36.0 and TRACES == [2]
+    assert len(_stored(tmp_path)) == 1
+    jax.clear_caches()
+    compilation.clear_programs()
+    assert float(_traced(a, 2)) == 36.0 and TRACES == [2]  # loaded, not traced
+    assert float(_traced(_Scaled(a.x + 1.0, a.factors), 2)) == 70.0 and TRACES == [2]  # same program, other input
+    assert float(_traced(a, 3)) == 98.0 and TRACES == [2, 3]
+    assert float(_traced(_Scaled(a.x, (1.0, 2.0, 4.0)), 2)) == 45.0 and TRACES == [2, 3, 2]
+    assert float(_traced(_Scaled(jnp.arange(1.0, 3.0), (1.0, 1.0)), 2)) == 5.0 and TRACES == [2, 3, 2, 2]
+    assert len(_stored(tmp_path)) == 4
+    abstract = _Scaled(jax.ShapeDtypeStruct((3,), jnp.float64), a.factors)  # as compile_solve passes a state
+    program = _traced.compiled(abstract, 2)
+    assert program.out_info.shape == () and TRACES == [2, 3, 2, 2]
+    assert float(program(a, 2)) == 36.0
+
+
+def test_executable_store_recompiles_what_it_cannot_load_or_store(tmp_path, jax_cache_settings):
+    """An unreadable entry (here truncated) is compiled again and replaced; a program with a host
+    callback, which cannot be serialised, runs without being stored."""
+    compilation.use_persistent_cache(tmp_path, min_compile_seconds=0)
+    a = _Scaled(jnp.arange(1.0, 4.0), (1.0, 1.0, 1.0))
+    TRACES.clear()
+    _traced(a, 1)
+    (entry,) = (tmp_path / "executables").glob("*.executable")
+    entry.write_bytes(entry.read_bytes()[:100])
+    jax.clear_caches()
+    compilation.clear_programs()
+    assert float(_traced(a, 1)) == 6.0 and TRACES == [1, 1]
+    jax.clear_caches()
+    compilation.clear_programs()
+    assert float(_traced(a, 1)) == 6.0 and TRACES == [1, 1]  # the replaced entry loads
+    assert float(_traced(a, 1, progress=True)) == 6.0 and TRACES == [1, 1, 1]
+    assert len(_stored(tmp_path)) == 1

@@ -457,3 +457,27 @@ def test_a_filter_that_rejects_every_trial_leaves_the_soft_restoration_step():
         solution = ip.finish(nlp, advance(nlp, after, options, options.max_iterations))
         assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
         np.testing.assert_allclose(solution.Z, reference.Z, atol=1e-6)
+
+
+def _without_refusal(state):
+    return dataclasses.replace(state, soft=ip.SoftStep(state.soft.pending, state.soft.reference))
+
+
+def test_a_soft_restoration_step_is_judged_at_the_next_iteration():
+    """A pending soft-restoration step (``SoftStep``) is kept where the primal–dual error at its
+    point is below 0.9999 of the reference, and turned down otherwise: the solve then goes on
+    from the state it would have had without the step, as if the step had never been taken."""
+    nlp = integrator(CAPPED, energy_cap=0.01)
+    start = ip.start(nlp, jnp.zeros((K, 3)), jnp.zeros(1), OPTIONS)
+    earlier, without = (advance(nlp, start, OPTIONS, n) for n in (2, 3))
+    expected = advance(nlp, without, OPTIONS, 4)
+    for reference, turned_down in ((0.0, True), (np.inf, False)):
+        pending = dataclasses.replace(earlier, iterations=without.iterations, soft=ip.SoftStep(
+            jnp.asarray(True), jnp.asarray(reference, without.soft.reference.dtype), _without_refusal(without)))
+        after = advance(nlp, pending, OPTIONS, 4)
+        assert int(after.iterations) == 4 and not bool(after.soft.pending)
+        same = all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(after.iterate.P),
+                                                        jax.tree.leaves(expected.iterate.P)))
+        assert same == turned_down
+        if turned_down:
+            np.testing.assert_array_equal(np.asarray(after.history[3]), np.asarray(expected.history[3]))

@@ -35,7 +35,7 @@ from jaxmm.solver.options import (EQUALITIES, GROUPS, HISTORY_COLUMNS, INEQUALIT
                                   SLACK_STARTS, SOC_STEPS, Options, Status, iteration_options)
 from jaxmm.solver.scaling import outside, scaled_problem, violation  # noqa: F401
 from jaxmm.solver.scaling import scaling as gradient_scaling
-from jaxmm.solver.state import Counters, Iterate, Multipliers, Solution, State  # noqa: F401
+from jaxmm.solver.state import Counters, Iterate, Multipliers, Solution, SoftStep, State  # noqa: F401
 from jaxmm.solver.trees import dot, l1, max_abs, select, tmap
 
 
@@ -77,7 +77,9 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
         history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
         scaling=factors, theta_max=1e4 * envelope, theta_min=1e-4 * envelope,
         restoring=jnp.asarray(False), restoration_theta=jnp.asarray(0.0, dtype),
+        soft=SoftStep(jnp.asarray(False), jnp.asarray(0.0, dtype)),
     )
+    state = dataclasses.replace(state, soft=SoftStep(state.soft.pending, state.soft.reference, state))
     # No weak types: a cold start (θ0 from Python floats) and a warm one must give the same avals,
     # so that one compiled ``advance`` serves both.
     return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.result_type(x)), state)
@@ -275,6 +277,35 @@ def iteration(ctx, state):
     c = problem.constraints(P, state.residuals)
     dl, du = barrier.distances(P, b)
     o = optimality(ctx, state, B, J, c, dl, du)
+    # A soft-restoration step is kept if the primal–dual error here beats the one it started from.
+    error = _soft_error(ctx, it, o.dual, c, dl, du, state.mu)
+    refuse = state.soft.pending & ~(error <= 0.9999 * state.soft.reference)
+    # Both outcomes are computed and one is selected: a conditional around the iteration would
+    # take the blocks (megabytes) as operands, which XLA copies into its branch.
+    return select(refuse, _refused(ctx, state, refuse), _newton_iteration(ctx, state, B, J, c, dl, du, o, ~refuse))
+
+
+def _report(ctx, when, k, row):
+    """Show history row ``row`` of iteration k to ``options.progress``, where ``when``."""
+    if ctx.options.progress is not None:
+        jax.lax.cond(when, lambda: jax.debug.callback(ctx.options.progress, k, row), lambda: None)
+
+
+def _refused(ctx, state, report):
+    """The state had the soft-restoration step that led to ``state`` been turned down (the
+    iteration that took it, counted once); its history row is shown again where ``report``."""
+    refused = state.soft.refused
+    _report(ctx, report, refused.iterations - 1, refused.history[refused.iterations - 1])
+    return dataclasses.replace(refused, soft=SoftStep(jnp.zeros_like(state.soft.pending), state.soft.reference, refused))
+
+
+def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
+    """The rest of ``iteration`` from the blocks B, rows J, residuals c, distances (dl, du) and
+    ``Optimality`` o at the iterate; its history row is shown to the progress callback where
+    ``report``."""
+    problem, options, b = ctx.problem, ctx.options, ctx.problem.bounds
+    it, restoring = state.iterate, state.restoring
+    P, zl, zu = it.P, it.zl, it.zu
     converged = ~restoring & (o.error0 <= options.stationarity) & (state.violation <= options.tolerance)
     # Short steps that no longer cut the violation: restoration from here, without a step.
     crawling = (~restoring & (options.max_short_steps > 0) & (options.max_restoration_iterations > 0)
@@ -325,23 +356,28 @@ def iteration(ctx, state):
         sufficient = jnp.isfinite(psi) & (psi - psi0 - 1e-4 * alpha * slope <= rounding * jnp.abs(psi0))
         return (jnp.where(restoring, sufficient, accepted), ~restoring & f_type, ~restoring & by_filter)
 
+    soft_steps = jnp.where(reset, 0, state.counters.soft_steps)
     search = line_search.search(P, c, direction, problem.evaluate, judge, slope_of, l1, restoring,
-                                factored & ~crawling, options.line_search_steps)
+                                factored & ~crawling, options.line_search_steps,
+                                ~restoring & (soft_steps < options.max_soft_steps))
     step = Step(c=c, f_now=cs * state.residuals.cost, dl=dl, du=du, optimality=o, mu=mu, updates=updates,
-                mu_step=mu_step, filter=filter_now, soft_steps=jnp.where(reset, 0, state.counters.soft_steps),
+                mu_step=mu_step, filter=filter_now, soft_steps=soft_steps,
                 crawling=crawling, converged=converged, delta_w=delta_w, factored=factored, work=work, zeta=zeta,
                 search=search, theta0=theta0, phi0=phi0)
-    new, record = jax.lax.cond(restoring, lambda: restoration.outcome(problem, options, state, step),
-                               lambda: _outcome(ctx, state, step))
-    new = dataclasses.replace(new, history=state.history.at[state.iterations].set(record))
+    (new, record), (refused, refused_record), soft = jax.lax.cond(
+        restoring, lambda: (restoration.outcome(problem, options, state, step),) * 2 + (jnp.asarray(False),),
+        lambda: _outcome(ctx, state, step))
+    k = state.iterations
+    new = dataclasses.replace(new, history=state.history.at[k].set(record))
+    refused = dataclasses.replace(refused, history=state.history.at[k].set(refused_record), iterations=k + 1,
+                                  soft=SoftStep(jnp.asarray(False), state.soft.reference))
     # A non-finite derivative or step stops the solve even where the line search rejected it.
     searched = factored & ~crawling
     finite = _finite(new.iterate) & _finite(o.dual) & (~searched | _finite(search.newton.dP))
+    new = dataclasses.replace(new, soft=SoftStep(soft & finite, _soft_reference(ctx, state, step), refused))
     new = select(finite, new, state)
-    if options.progress is not None:  # the row the history keeps for this iteration
-        jax.debug.callback(options.progress, state.iterations, new.history[state.iterations])
-    return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)),
-                               iterations=state.iterations + 1)
+    _report(ctx, report, k, new.history[k])  # the row the history keeps for this iteration
+    return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)), iterations=k + 1)
 
 
 def _finite(tree):
@@ -356,44 +392,39 @@ def _primal_dual_error(dual, c, complementarity):
                for tree in (dual, c, complementarity))
 
 
-def _soft_restoration(ctx, state, step):
-    """IPOPT's soft restoration: every trial turned down, the Newton step to its
-    fraction-to-boundary length, in all variables at once, is taken if it reduces the barrier
-    problem's primal–dual error by 0.9999. Near a solution with huge multipliers (walk-to-fly),
-    Newton steps lower the infeasibility but raise φ, and the filter turns them all down.
-    Returns (taken, the point, the NLP's residuals there); the current point's error comes from
-    this iteration's blocks (a second reverse-mode pass through the NLP costs ≈ 6 s of
-    compilation)."""
-    problem, b, it = ctx.problem, ctx.problem.bounds, state.iterate
-    d, mu = step.search.newton, step.mu
-    alpha = jnp.minimum(d.alpha_max, d.alpha_z)
-    P, y, zl, zu = (tmap(lambda v, dv: v + alpha * dv, v, dv)
-                    for v, dv in zip((it.P, it.y, it.zl, it.zu), (d.dP, d.dy, d.dzl, d.dzu)))
+def _soft_error(ctx, it, dual, c, dl, du, mu):
+    """The barrier problem's primal–dual error (μ) at the ``Iterate`` it, whose dual
+    infeasibility is ``dual`` (``Optimality.dual``), residuals c and distances (dl, du): the
+    measure of IPOPT's soft restoration (``SoftStep``). The slacks' dual rows count only the
+    rows that are active (``ScaledProblem.active``), as the slacks enter the residuals."""
+    problem, b = ctx.problem, ctx.problem.bounds
     slack_dual = tuple(jnp.where(f, -yi * a - p + q, 0.0) for yi, a, p, q, f in
                        zip(it.y[2:], problem.active, it.zl[2:], it.zu[2:], b.free[2:]))
-    now = _primal_dual_error(step.optimality.dual[:2] + slack_dual, step.c,
-                             barrier.complementarity(step.dl, step.du, it.zl, it.zu, mu, b))
+    return _primal_dual_error(dual[:2] + slack_dual, c, barrier.complementarity(dl, du, it.zl, it.zu, mu, b))
 
-    def lagrangian(P):
-        f, c, r = problem.evaluate(P)
-        return f + dot(y, c), (c, r)
 
-    grad, (c, r) = jax.grad(lagrangian, has_aux=True)(P)
-    dual = tmap(lambda g, a, c_, f: jnp.where(f, g - a + c_, 0.0), grad, zl, zu, b.free)
-    error = _primal_dual_error(dual, c, barrier.complementarity(*barrier.distances(P, b), zl, zu, mu, b))
-    return error <= 0.9999 * now, P, r
+def _soft_reference(ctx, state, step):
+    """The primal–dual error at the iterate, which a soft-restoration step from it must lower to
+    0.9999 of (IPOPT's soft restoration; ``SoftStep``)."""
+    return _soft_error(ctx, state.iterate, step.optimality.dual, step.c, step.dl, step.du, step.mu)
 
 
 def _outcome(ctx, state, step):
-    """The state after one iteration of the barrier problem (IPOPT's update: the step or soft
-    restoration, the filter, the rejection counters and the switch to the restoration phase) and
-    its history row."""
+    """The barrier problem's update after one iteration: ((state, history row) with the
+    soft-restoration point where the search ended on one, (state, row) had it been turned
+    down, whether it is pending (``SoftStep``))."""
+    soft = step.search.soft & ~step.converged
+    return _update(ctx, state, step, soft), _update(ctx, state, step, jnp.asarray(False)), soft
+
+
+def _update(ctx, state, step, soft):
+    """The state after one iteration of the barrier problem (IPOPT's update: the accepted step
+    or, where ``soft``, the soft-restoration point; the filter, the rejection counters and the
+    switch to the restoration phase) and its history row."""
     problem, options, b, it, s = ctx.problem, ctx.options, ctx.problem.bounds, state.iterate, step.search
     accepted = s.accepted & step.factored & ~step.crawling
     d = select(s.corrected, s.correction, s.newton)  # the corrected step replaces the Newton step
-    soft, P_soft, r_soft = jax.lax.cond(
-        step.factored & ~accepted & ~step.crawling & (step.soft_steps < options.max_soft_steps),
-        lambda: _soft_restoration(ctx, state, step), lambda: (jnp.asarray(False), it.P, state.residuals))
+    P_soft, r_soft = s.last.P, s.last.r
     alpha_soft = jnp.minimum(s.newton.alpha_max, s.newton.alpha_z)
     length = jnp.where(accepted, s.last.alpha, jnp.where(soft, alpha_soft, 0.0))
     length_z = jnp.where(accepted, d.alpha_z, jnp.where(soft, alpha_soft, 0.0))

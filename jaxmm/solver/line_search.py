@@ -1,7 +1,8 @@
 """IPOPT's filter line search (Wächter & Biegler 2006, section 2.3–2.4 and 3.3–3.4) as one loop of
 trials: the Newton step at its fraction-to-boundary length, then second-order corrections
-(when the full step raised the infeasibility), then backtracking; and soft restoration when
-every trial was turned down.
+(when the full step raised the infeasibility), then backtracking; and, when every trial was turned down, the soft-restoration point (the
+Newton step at its fraction-to-boundary length in the primal and the dual variables, IPOPT's
+soft restoration), evaluated by the same loop so that its residuals come with it.
 
 Each pass of the loop computes at most one direction (the Newton step, or a correction: the
 same ``direction`` call, its right-hand side chosen by the phase) and evaluates one trial point,
@@ -17,7 +18,7 @@ import jax.numpy as jnp
 from jaxmm.solver.options import SOC_STEPS
 from jaxmm.solver.trees import select, tmap
 
-NEWTON, CORRECTION, BACKTRACK, DONE = 0, 1, 2, 3
+NEWTON, CORRECTION, BACKTRACK, SOFT, DONE = 0, 1, 2, 3, 4
 
 
 @jax.tree_util.register_dataclass
@@ -54,13 +55,14 @@ class Trial:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Search:
-    """The loop's state: phase (NEWTON, CORRECTION, BACKTRACK, DONE); newton, the Newton
+    """The loop's state: phase (NEWTON, CORRECTION, BACKTRACK, SOFT, DONE); newton, the Newton
     direction; correction, the last second-order correction and its right-hand side c_soc (the
     accumulated residuals, eq. 27 of Wächter & Biegler) with its step length alpha_soc;
     corrections, backtracks: their counts; slope, the directional derivative of the merit along
     the Newton step; last, the last trial and theta_last its infeasibility; accepted, f_type
     (an Armijo step of the filter method), corrected (the accepted trial was a correction),
-    blocked (some trial was rejected by the filter alone); solves (block solves in all)."""
+    blocked (some trial was rejected by the filter alone); soft (every trial was turned down and
+    last is the soft-restoration point); solves (block solves in all)."""
 
     phase: jax.Array
     newton: Direction
@@ -76,6 +78,7 @@ class Search:
     f_type: jax.Array
     corrected: jax.Array
     blocked: jax.Array
+    soft: jax.Array
     solves: jax.Array
 
 
@@ -95,43 +98,48 @@ def filter_acceptance(alpha, theta, phi, theta0, phi0, slope, theta_min, in_filt
     return sufficient & ~filtered, switching & armijo, sufficient & filtered
 
 
-def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, start, steps):
+def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, start, steps, soft):
     """The trials of one iteration from P (scaled residuals c there).
 
     direction(c_q, needed) → ``Direction`` for the constraint right-hand side c_q (a zero step
     without a block solve where ``needed`` is false); evaluate(P) → (f, c, r); slope_of(Direction) → the merit's
     slope; judge(α_judge, α, trial, θ, slope) → (accepted, f_type, by the filter alone);
     theta_of(c) → ‖c‖₁; restoring: no corrections (the restoration phase); start: whether to
-    search at all (the Newton matrix factored); steps: most backtracking halvings. Returns the
-    final ``Search``."""
+    search at all (the Newton matrix factored); steps: most backtracking halvings; soft: whether
+    the soft-restoration point P + min(α_max, α_z) dP follows when every trial is turned down.
+    Returns the final ``Search``."""
     theta0 = theta_of(c)
 
     def body(s):
         first, correcting, backtracking = s.phase == NEWTON, s.phase == CORRECTION, s.phase == BACKTRACK
+        softening = s.phase == SOFT
         c_next = tmap(lambda a, b: s.alpha_soc * a + b, s.c_soc, s.last.c)
         d = direction(select(first, c, c_next), first | correcting)
         newton = select(first, d, s.newton)
         slope = jax.lax.cond(first, slope_of, lambda _: s.slope, d)
-        alpha = jnp.where(backtracking, 0.5 * s.last.alpha, d.alpha_max)
-        dP = select(backtracking, s.newton.dP, d.dP)
+        alpha = jnp.where(backtracking, 0.5 * s.last.alpha,
+                          jnp.where(softening, jnp.minimum(s.newton.alpha_max, s.newton.alpha_z), d.alpha_max))
+        dP = select(backtracking | softening, s.newton.dP, d.dP)
         Pt = tmap(lambda p, v: p + alpha * v, P, dP)
         f, ct, rt = evaluate(Pt)
         theta = theta_of(ct)
         ok, f_type, by_filter = judge(jnp.where(backtracking, alpha, newton.alpha_max), alpha, (Pt, f, ct), theta, slope)
+        ok, f_type, by_filter = ok & ~softening, f_type & ~softening, by_filter & ~softening
         # Second-order corrections (IPOPT's max_soc, κ_soc = 0.99): when the full step raises the
         # infeasibility, and again while each correction cuts it by κ_soc.
         to_correction = ~ok & ~restoring & ((first & (theta >= theta0))
                                             | (correcting & (s.corrections + 1 < SOC_STEPS) & (theta <= 0.99 * s.theta_last)))
-        to_backtrack = ~ok & ~to_correction & jnp.where(backtracking, s.backtracks + 1 < steps, steps > 0)
-        phase = jnp.where(to_correction, CORRECTION, jnp.where(to_backtrack, BACKTRACK, DONE))
+        to_backtrack = ~ok & ~to_correction & ~softening & jnp.where(backtracking, s.backtracks + 1 < steps, steps > 0)
+        to_soft = ~ok & ~to_correction & ~to_backtrack & ~softening & soft
+        phase = jnp.where(to_correction, CORRECTION, jnp.where(to_backtrack, BACKTRACK, jnp.where(to_soft, SOFT, DONE)))
         last = Trial(Pt, f, ct, rt, jnp.where(to_backtrack & ~backtracking, newton.alpha_max, alpha))
         return Search(
             phase=phase, newton=newton, correction=select(correcting, d, s.correction),
             c_soc=select(first, c, select(correcting, c_next, s.c_soc)),
             alpha_soc=jnp.where(first | correcting, d.alpha_max, s.alpha_soc),
             corrections=s.corrections + correcting, backtracks=s.backtracks + backtracking, slope=slope,
-            last=last, theta_last=theta, accepted=ok, f_type=f_type, corrected=correcting & ok,
-            blocked=s.blocked | by_filter, solves=s.solves + d.solves)
+            last=last, theta_last=jnp.where(softening, s.theta_last, theta), accepted=ok, f_type=f_type,
+            corrected=correcting & ok, blocked=s.blocked | by_filter, soft=softening, solves=s.solves + d.solves)
 
     placeholder = jax.eval_shape(lambda: direction(c, jnp.asarray(False)))
     blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), placeholder)
@@ -142,5 +150,5 @@ def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, star
         corrections=jnp.asarray(0), backtracks=jnp.asarray(0), slope=zero,
         last=Trial(P, jnp.zeros(f0.shape, f0.dtype), c, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), r0), zero),
         theta_last=theta0, accepted=jnp.asarray(False), f_type=jnp.asarray(False), corrected=jnp.asarray(False),
-        blocked=jnp.asarray(False), solves=jnp.zeros((), placeholder.solves.dtype))
+        blocked=jnp.asarray(False), soft=jnp.asarray(False), solves=jnp.zeros((), placeholder.solves.dtype))
     return jax.lax.while_loop(lambda s: s.phase != DONE, body, initial)

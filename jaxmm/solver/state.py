@@ -87,6 +87,22 @@ class Counters:
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
+class SoftStep:
+    """A soft-restoration step taken on trust. IPOPT keeps such a step when it lowers the
+    barrier problem's primal–dual error to 0.9999 of the error where it started; the error at
+    the new point needs the Lagrangian's gradient there, which the next iteration's derivatives
+    compute, so the test is made at the next iteration, and a step that fails it is undone
+    (``refused`` replaces the state) before anything else is computed from it. pending: whether
+    the state's iterate is such a step; reference: the error it must beat; refused: the
+    ``State`` had the step been turned down (its own ``soft.refused`` is None)."""
+
+    pending: jax.Array
+    reference: jax.Array
+    refused: object = None
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
 class State:
     """The solver between two iterations (``start``, ``advance``, ``finish``).
 
@@ -98,7 +114,7 @@ class State:
     per-row factors of the four groups); theta_max: the filter's envelope on the infeasibility,
     theta_min: the infeasibility below which Armijo steps on the barrier function may be taken
     (both from the starting point); restoring: in the restoration phase; restoration_theta: the
-    infeasibility where it started."""
+    infeasibility where it started; soft: the ``SoftStep`` whose test is still to be made."""
 
     iterate: Iterate
     residuals: object
@@ -117,3 +133,4 @@ class State:
     theta_min: jax.Array
     restoring: jax.Array
     restoration_theta: jax.Array
+    soft: SoftStep
