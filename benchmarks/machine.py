@@ -1,9 +1,12 @@
 """What every benchmark shares: the header (the machine, its load, package versions), the
-format of a duration, progress lines, a wall-clock timer and Markdown tables."""
+format of a duration, progress lines, a wall-clock timer, Markdown tables and measurements run
+in a fresh Python process."""
 
 import importlib.metadata
+import json
 import os
 import platform
+import subprocess
 import sys
 import time
 
@@ -52,3 +55,15 @@ def render(header, rows):
     widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
     cells = lambda line: "| " + " | ".join(c.ljust(w) for c, w in zip(line, widths)) + " |"  # noqa: E731
     return "\n".join([cells(lines[0]), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + list(map(cells, lines[1:])))
+
+
+def probe(code, arguments, what, **environment):
+    """Run ``code`` in a fresh Python process with ``arguments`` (``sys.argv[1:]``) and
+    ``environment`` added to this one's (OPENBLAS_NUM_THREADS=1 unless given); returns the JSON
+    of its last line that starts with "PROBE ". Raises RuntimeError naming ``what`` on failure."""
+    env = dict(os.environ, **{"OPENBLAS_NUM_THREADS": "1", **environment})
+    result = subprocess.run([sys.executable, "-c", code, *map(str, arguments)], capture_output=True, text=True, env=env)
+    lines = [line for line in result.stdout.splitlines() if line.startswith("PROBE ")]
+    if result.returncode or not lines:
+        raise RuntimeError(f"{what} failed:\n{result.stderr[-3000:]}")
+    return json.loads(lines[-1][len("PROBE "):])

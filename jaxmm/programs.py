@@ -51,9 +51,10 @@ DEFAULT_OPTIONS = ip.Options()
 WARM_START = dict(barrier0=1e-6, bound_push=1e-6)
 
 
-def task_solution(task, nlp, solution):
-    """The ``TaskSolution`` of ``task`` for a ``Solution`` of its stage-wise ``nlp``."""
-    r = stagewise.residuals(nlp, solution.Z, solution.theta)
+def task_solution(task, nlp, solution, residuals=None):
+    """The ``TaskSolution`` of ``task`` for a ``Solution`` of its stage-wise ``nlp``;
+    ``residuals``: the NLP's residuals at the solution when they are at hand."""
+    r = stagewise.residuals(nlp, solution.Z, solution.theta) if residuals is None else residuals
     outside = dataclasses.replace(
         r, path_equality=jnp.abs(r.path_equality), transition_equality=jnp.abs(r.transition_equality),
         path_inequality=ip.outside(r.path_inequality, nlp.path_lower, nlp.path_upper),
@@ -88,7 +89,7 @@ def advance(task, state, options, until):
 def finish(task, state, stopped):
     """The ``TaskSolution`` of a last ``state``; ``stopped``: the status of a solve cut short."""
     nlp = transcription.stagewise_nlp(task)
-    return task_solution(task, nlp, ip.finish(nlp, state, stopped))
+    return task_solution(task, nlp, ip.finish(nlp, state, stopped), state.residuals)
 
 
 def check_guess(task, guess, label="guess"):

@@ -501,11 +501,11 @@ def finish(nlp, state, stopped=Status.MAX_ITERATIONS):
     status = jnp.where(state.status == int(Status.RUNNING), jnp.asarray(stopped, state.status.dtype), state.status)
     it = state.iterate
     Z, theta = it.P[0], it.P[1]
-    v, per_group = violation(nlp, Z, theta)
+    v, per_group = violation(nlp, Z, theta, state.residuals)  # the residuals the state carries, at (Z, θ)
     return Solution(
         Z=Z, theta=theta,
         multipliers=Multipliers(**{g: yi * s / cost_scale for g, yi, s in zip(GROUPS, it.y, row_scale)}),
-        status=status, objective=stagewise.residuals(nlp, Z, theta).cost, violation=v,
+        status=status, objective=state.residuals.cost, violation=v,
         violation_per_group=per_group, stationarity=state.stationarity, iterations=state.iterations,
         barrier_updates=state.counters.barrier_updates, history=state.history, bound_multipliers=(it.zl, it.zu),
         slacks=(it.P[2], it.P[3]), scaling=(cost_scale, row_scale),
