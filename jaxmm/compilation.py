@@ -77,7 +77,8 @@ class _Jitted:
     def compiled(self, *args, **kwargs):
         """The ``Program`` compiled for arguments like these (values, or ``jax.ShapeDtypeStruct``
         leaves): from this process's memory, else from the ``ExecutableStore`` where JAX's
-        persistent cache is on, else lowered and compiled (through JAX's cache) and kept in both."""
+        persistent cache is on, else lowered and compiled (with JAX's cache off where the store
+        is on, ``_compile_afresh``; through it otherwise) and kept in memory and in the store."""
         arguments, statics = self._split(args, kwargs)
         leaves, treedef = jax.tree.flatten(arguments)
         key = (self._fn, treedef, statics, tuple(_leaf_type(leaf) for leaf in leaves))
@@ -294,7 +295,8 @@ def _canonical(value):
         return (f"{getattr(node, '__module__', '')}.{getattr(node, '__qualname__', repr(node))}", _canonical(data),
                 tuple(_canonical(child) for child in value.children()))
     if isinstance(value, np.ndarray):
-        return ("array", value.dtype.str, value.shape, hashlib.sha256(np.ascontiguousarray(value).tobytes()).hexdigest())
+        digest = hashlib.sha256(np.ascontiguousarray(value).tobytes()).hexdigest()
+        return ("array", value.dtype.str, value.shape, digest)
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return (f"{type(value).__module__}.{type(value).__qualname__}",
                 tuple((f.name, _canonical(getattr(value, f.name))) for f in dataclasses.fields(value)))

@@ -266,9 +266,8 @@ def iteration(ctx, state):
     barrier update, the Newton system factored with inertia correction, the trials of the line
     search, and the update (the barrier problem's, or the restoration phase's). Returns the new
     ``State``."""
-    problem, options, b = ctx.problem, ctx.options, ctx.problem.bounds
-    it, restoring = state.iterate, state.restoring
-    P, y, zl, zu = it.P, it.y, it.zl, it.zu
+    problem, b, it = ctx.problem, ctx.problem.bounds, state.iterate
+    P, y = it.P, it.y
     # The path multipliers let the blocks carry the path Hessian's kinematic curvature, computed
     # with their Jacobian (the Lagrangian's curvature uses the same multipliers).
     B = stagewise.blocks(problem.nlp, P[0], P[1], path_multipliers=(y[0] * problem.row_scale[0],
@@ -296,7 +295,8 @@ def _refused(ctx, state, report):
     iteration that took it, counted once); its history row is shown again where ``report``."""
     refused = state.soft.refused
     _report(ctx, report, refused.iterations - 1, refused.history[refused.iterations - 1])
-    return dataclasses.replace(refused, soft=SoftStep(jnp.zeros_like(state.soft.pending), state.soft.reference, refused))
+    done = SoftStep(jnp.zeros_like(state.soft.pending), state.soft.reference, refused)
+    return dataclasses.replace(refused, soft=done)
 
 
 def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):

@@ -1,8 +1,9 @@
 """IPOPT's filter line search (Wächter & Biegler 2006, section 2.3–2.4 and 3.3–3.4) as one loop of
 trials: the Newton step at its fraction-to-boundary length, then second-order corrections
-(when the full step raised the infeasibility), then backtracking; and, when every trial was turned down, the soft-restoration point (the
-Newton step at its fraction-to-boundary length in the primal and the dual variables, IPOPT's
-soft restoration), evaluated by the same loop so that its residuals come with it.
+(when the full step raised the infeasibility), then backtracking; and, when every trial was
+turned down, the soft-restoration point (the Newton step at its fraction-to-boundary length in
+the primal and the dual variables, IPOPT's soft restoration), evaluated by the same loop so that
+its residuals come with it.
 
 Each pass of the loop computes at most one direction (the Newton step, or a correction: the
 same ``direction`` call, its right-hand side chosen by the phase) and evaluates one trial point,
