@@ -9,8 +9,6 @@ import pytest
 import jaxmm
 from conftest import random_configurations
 
-pytest.importorskip("pinocchio", reason="Pinocchio (pin) is the reference: pip install -e '.[test]'")
-
 COUNT = 50
 TOL = 1e-10
 

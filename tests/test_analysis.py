@@ -1,10 +1,10 @@
-"""``validate`` passes a physically exact trajectory and names what is wrong with bad ones."""
+"""``validate`` passes a physically exact trajectory, names what is wrong with bad ones, and its
+thresholds decide where a measured value turns a check from passed to failed."""
 
 import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 import jaxmm
 from jaxmm import analysis, tasks
@@ -87,8 +87,36 @@ def test_unbalanced_forces_fail_the_resimulation():
     assert report.resimulated_com[-1, 2] < trajectory.knots.com[-1, 2] - 0.01  # it falls
 
 
-@pytest.mark.parametrize("contact_height", [0.01, 0.05])
-def test_thresholds_are_options(contact_height):
+def test_the_resimulation_tolerance_decides_its_verdict():
+    """With every contact force 10 % short and no thrust, the re-simulated CoM sinks from rest
+    at 0.1 |g|; the trapezoidal rule of ``resimulate_com`` integrates a constant acceleration
+    exactly, so it ends 0.1 |g| T²/2 below the planned, still CoM. A tolerance 1 % above that
+    passes the check, one 1 % below fails it: the same trajectory, two verdicts."""
     task, trajectory = _standing_still()
-    report = analysis.validate(task, trajectory, contact_height=contact_height, resimulation_tolerance=1e-6)
-    assert report.ok, str(report)
+    assert task.integration == "trapezoidal" and not np.any(np.asarray(trajectory.knots.thrust))
+    weaker = Trajectory(dataclasses.replace(trajectory.knots, contact_forces=trajectory.knots.contact_forces * 0.9),
+                        trajectory.total_time)
+    drop = 0.1 * np.linalg.norm(task.params.gravity) * float(trajectory.total_time) ** 2 / 2
+    for tolerance, fails in ((0.99 * drop, True), (1.01 * drop, False)):
+        report = analysis.validate(task, weaker, resimulation_tolerance=tolerance)
+        assert ("re-simulated CoM" in report.failed) == fails, str(report)
+
+
+def test_contact_height_and_flight_force_decide_their_verdict():
+    """One corner raised 3 cm at a knot, still pushing with its stance force f: under a
+    contact_height just above 3 cm it is on the ground and its force allowed; just below, it
+    is off the ground, and its force fails the check under a flight_force just below f and
+    passes it just above f."""
+    task, trajectory = _standing_still()
+    height = 0.03
+    raised = Trajectory(dataclasses.replace(trajectory.knots, contact_points=trajectory.knots.contact_points.at[
+        3, 0, 2].set(height)), trajectory.total_time)
+    force = float(trajectory.knots.contact_forces[3, 0, 2])
+    assert force > 1.0  # the default flight_force: the check has a force to refuse
+
+    def in_air_fails(**thresholds):
+        return "no force on corners off the ground" in analysis.validate(task, raised, **thresholds).failed
+
+    assert not in_air_fails(contact_height=1.01 * height) and in_air_fails(contact_height=0.99 * height)
+    assert in_air_fails(contact_height=0.99 * height, flight_force=0.99 * force)
+    assert not in_air_fails(contact_height=0.99 * height, flight_force=1.01 * force)

@@ -5,7 +5,6 @@ many ran in the test summary."""
 
 import dataclasses
 import functools
-import os
 
 import jax
 import jax.numpy as jnp
@@ -287,41 +286,50 @@ def _unsolved():
     return solve.TaskSolution(tasks.initial_guess(take_off()), None, {})
 
 
-def _write(path, content):
-    path.write_bytes(content)
-    return path
-
-
-FILE_CASES = {
+SAVE_CASES = {
     "save a guess instead of a solution": (lambda d: io.save(d / "s.npz", take_off(), tasks.initial_guess(
         take_off())), TypeError, "needs a Task and a TaskSolution"),
-    "save a solution of another knot count": (lambda d: io.save(d / "s.npz", _take_off(knots=10), _unsolved()),
+    "save a solution of another knot count": (lambda d: io.save(d / "s", _take_off(knots=10), _unsolved()),
                                               ValueError, "the result has 15 knots, the task 11"),
     "save into a missing directory": (lambda d: io.save(d / "no" / "s.npz", take_off(), _unsolved()),
                                       FileNotFoundError, "does not exist"),
-    "load a missing file": (lambda d: io.load(d / "missing.npz"), FileNotFoundError, "no solution file"),
-    "load a text file": (lambda d: io.load(_write(d / "t.npz", b"hello")), io.SolutionFileError,
+}
+
+
+def _tree(directory):
+    """Every path under directory (hidden temporaries and subdirectories included)."""
+    return sorted(p.relative_to(directory) for p in directory.rglob("*"))
+
+
+@pytest.mark.parametrize("call, error, message", SAVE_CASES.values(), ids=SAVE_CASES.keys())
+def test_bad_save_input(call, error, message, tmp_path):
+    """A refused save leaves the directory as it was: no file under the name asked for, none
+    under it with the ``.npz`` numpy's savez appends, no temporary, no directory."""
+    before = _tree(tmp_path)
+    with pytest.raises(error, match=message):
+        call(tmp_path)
+    assert _tree(tmp_path) == before
+
+
+LOAD_CASES = {
+    "load a missing file": ("missing.npz", lambda path: None, FileNotFoundError, "no solution file"),
+    "load a text file": ("t.npz", lambda path: path.write_bytes(b"hello"), io.SolutionFileError,
                          "not a readable .npz solution file"),
-    "load an npz without a header": (lambda d: io.load(_savez(d / "h.npz", x=np.zeros(3))), io.SolutionFileError,
+    "load an npz without a header": ("h.npz", lambda path: np.savez(path, x=np.zeros(3)), io.SolutionFileError,
                                      "no jaxmm header"),
-    "load a header that is not JSON": (lambda d: io.load(_savez(d / "j.npz", **{io.HEADER: np.array("{")})),
+    "load a header that is not JSON": ("j.npz", lambda path: np.savez(path, **{io.HEADER: np.array("{")}),
                                        io.SolutionFileError, "corrupt header"),
 }
 
 
-def _savez(path, **arrays):
-    np.savez(path, **arrays)
-    return path
-
-
-@pytest.mark.parametrize("call, error, message", FILE_CASES.values(), ids=FILE_CASES.keys())
-def test_bad_file_input(call, error, message, tmp_path):
-    before = sorted(os.listdir(tmp_path))
+@pytest.mark.parametrize("name, write, error, message", LOAD_CASES.values(), ids=LOAD_CASES.keys())
+def test_bad_load_input(name, write, error, message, tmp_path):
+    """A refused file is left as it was, and nothing is written beside it."""
+    write(tmp_path / name)
+    before = {path: (tmp_path / path).read_bytes() for path in _tree(tmp_path)}
     with pytest.raises(error, match=message):
-        call(tmp_path)
-    created = [name for name in os.listdir(tmp_path) if name not in before and not name.endswith((".npz",))]
-    assert not created, f"left behind: {created}"
-    assert not any(name.startswith(".") for name in os.listdir(tmp_path)), "a temporary file was left behind"
+        io.load(tmp_path / name)
+    assert {path: (tmp_path / path).read_bytes() for path in _tree(tmp_path)} == before
 
 
 # ------------------------------------------------------------------------------ command line

@@ -85,7 +85,6 @@ def test_progress_is_shown_on_a_terminal_and_silent_otherwise():
 def test_compare_prints_both_solvers_side_by_side(solved_take_off, capsys, monkeypatch):
     """The comparison's plumbing: our side is the solved take-off (test_solve_task cross-checks
     the two optima), IPOPT runs for real from the same guess, stopped after 3 iterations."""
-    pytest.importorskip("casadi", reason="the IPOPT reference needs the reference extra")
     from jaxmm import programs
 
     monkeypatch.setattr(programs, "compile_solve", lambda task, **kwargs: lambda: solved_take_off[1])

@@ -4,8 +4,8 @@ and weight tuning with optax (``jaxmm.tuning``), on the reduced take-off of ``co
 The gradient is the implicit derivative at the solution; the reference is central differences
 of re-solves warm-started from that solution, which keep its contact schedule (checked). Every
 compiled program here is shared with ``test_solve_task`` (same task structure and options):
-the cold and warm-started solves, and one adjoint program. The solving tests are marked slow
-(5–6 min on 2 cores): run them by hand with ``pytest -m slow``.
+the cold and warm-started solves, and one adjoint program. ``jax.grad`` through a
+differentiable solve compiles a program of its own and is marked slow (``pytest -m slow``).
 """
 
 import dataclasses
@@ -59,7 +59,6 @@ def polished(solved_take_off):
     return task, again
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", list(CASES))
 def test_the_take_off_gradient_matches_central_differences_of_re_solves(polished, name):
     """d(thrust impulse)/d(parameter) at the take-off's solution, against (J(p + h) − J(p − h)) / 2h
@@ -99,7 +98,6 @@ def test_the_take_off_gradient_matches_central_differences_of_re_solves(polished
     assert abs(derivative - difference) <= AGREE * abs(difference)
 
 
-@pytest.mark.slow
 def test_tuning_moves_the_thrust_impulse_towards_a_target(solved_take_off):
     """Three Adam steps on log(com_vel, final_thrust) towards an impulse 1 % below the solution's:
     the loss falls, every solve converges, the history is complete, and the weights returned are

@@ -18,7 +18,6 @@ import hypothesis.strategies as st
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, given, settings
 
 import jaxmm
@@ -26,8 +25,6 @@ from jaxmm.solver import interior_point as ip
 
 from conftest import PinocchioTwin
 from test_solver import CAPPED, K, integrator
-
-pytest.importorskip("pinocchio", reason="the rigid-body fuzzing compares with Pinocchio: pip install pin")
 
 FUZZ = settings(max_examples=25, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

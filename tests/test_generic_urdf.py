@@ -9,8 +9,6 @@ import pytest
 import jaxmm
 from conftest import PinocchioTwin, random_configurations
 
-pytest.importorskip("pinocchio", reason="Pinocchio (pin) is the reference: pip install -e '.[test]'")
-
 
 def _link(name, mass, com, rpy):
     if mass is None:

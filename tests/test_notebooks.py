@@ -4,10 +4,9 @@ cell, so that none of them rots. The notebooks as committed keep the outputs of 
 
 import pathlib
 
+import nbclient
+import nbformat
 import pytest
-
-nbformat = pytest.importorskip("nbformat", reason="the notebooks need the test extra: pip install -e '.[test]'")
-nbclient = pytest.importorskip("nbclient", reason="the notebooks need the test extra: pip install -e '.[test]'")
 
 NOTEBOOKS = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
 

@@ -1,5 +1,6 @@
 """Identities, autodiff checks and vmap equivalence of kinematics, CoM and the CMM."""
 
+import dataclasses
 import functools
 
 import jax
@@ -65,12 +66,21 @@ def test_frame_jacobian_is_derivative_of_frame_position(model, configurations):
 
 
 def test_cmm_of_rigid_motion(model, configurations):
-    """A pure base translation gives h = (m ṗ, 0); joint velocities alone leave m ẋ = J_com ṡ."""
+    """A pure base translation gives h = (m ṗ, 0); joint velocities alone leave m ẋ = J_com ṡ,
+    ẋ the derivative of com(q(t)) by forward-mode autodiff with the base at rest."""
     q = configurations[0]
+    m = jaxmm.total_mass(model)
     p_dot = np.array([0.3, -1.0, 2.0])
     nu = np.concatenate([p_dot, np.zeros(model.nv - 3)])
     h = jaxmm.centroidal_momentum(model, q, nu)
-    assert np.allclose(h, np.concatenate([jaxmm.total_mass(model) * p_dot, np.zeros(3)]), atol=1e-12)
+    assert np.allclose(h, np.concatenate([m * p_dot, np.zeros(3)]), atol=1e-12)
+    s_dot = np.random.default_rng(8).normal(size=model.nv - 6)
+    nu = np.concatenate([np.zeros(6), s_dot])
+    _, x_dot = jax.jvp(functools.partial(jaxmm.com_position, model), (q,), (np.concatenate([np.zeros(7), s_dot]),))
+    h = jaxmm.centroidal_momentum(model, q, nu)
+    assert np.linalg.norm(x_dot) > 0.01  # the joints move the CoM: the check has something to match
+    assert np.allclose(h[:3], m * x_dot, atol=1e-12)
+    assert np.allclose(h[:3], m * jaxmm.com_jacobian(model, q)[:, 6:] @ s_dot, atol=1e-12)
 
 
 def test_vmap_matches_single_calls(model, configurations):
@@ -161,8 +171,24 @@ def test_standing_pose_has_feet_on_the_ground(ironcub):
 
 
 def test_jit_with_static_model_fields(model, configurations):
-    """The model is a pytree: passing it as a jit argument traces only its arrays."""
-    compiled = jax.jit(jaxmm.centroidal_momentum_matrix)
+    """The model is a pytree: passing it as a jit argument traces only its arrays. The traced
+    program's inputs are the model's array leaves and q, and a model with other masses and
+    inertias (scaled by 2: every momentum doubles) runs the same program without a new trace."""
+    traces = []
+
+    def cmm(model, q):
+        traces.append(None)
+        return jaxmm.centroidal_momentum_matrix(model, q)
+
+    leaves = jax.tree.leaves(model)
+    assert leaves and all(isinstance(leaf, jax.Array) for leaf in leaves)
+    assert len(jax.make_jaxpr(cmm)(model, configurations[0]).jaxpr.invars) == len(leaves) + 1
+    compiled = jax.jit(cmm)
     A = compiled(model, configurations[0])
     assert A.shape == (6, model.nv) and A.dtype == jnp.float64
     assert np.allclose(A, jaxmm.centroidal_momentum_matrix(model, configurations[0]))
+    heavier = dataclasses.replace(model, inertial_mass=2 * model.inertial_mass,
+                                  inertial_inertia=2 * model.inertial_inertia)
+    traces.clear()
+    assert np.allclose(compiled(heavier, configurations[0]), 2 * A, atol=1e-12)
+    assert not traces

@@ -69,10 +69,15 @@ def test_gram_on_row_supports_equals_the_dense_gram(transition):
         mask_now[run.start:run.stop, list(run.now)] = 1.0
         mask_next[run.start:run.stop, list(run.next)] = 1.0
     dense = rows.Rows(J.jz * mask_now, J.jt, None if J.jn is None else J.jn * mask_next)
-    sparse = rows.Rows(dense.jz, dense.jt, dense.jn, runs)
+    group = "transition_equality" if transition else "path_equality"
+    blocks = types.SimpleNamespace(**{group + "_z": dense.jz, group + "_theta": dense.jt, group + "_znext": dense.jn})
+    sparse = rows.group_rows(blocks, group, runs)
+    assert sparse.supports == runs
     w = np.random.default_rng(4).uniform(0.0, 2.0, size=(K - 1 if transition else K, 5))
-    for ours, expected in zip(rows.gram(sparse, w, K), rows.gram(dense, w, K)):
+    for ours, expected in zip(rows.gram(sparse, w, K), rows.gram(dense, w, K), strict=True):
         np.testing.assert_allclose(ours, expected, atol=1e-12)
+    with pytest.raises(ValueError, match=f"row supports of {group} must cover its 5 rows"):
+        rows.group_rows(blocks, group, runs[:2])  # rows 2:5 left out
 
 
 @pytest.mark.parametrize("supported", [False, True])

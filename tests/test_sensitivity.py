@@ -6,7 +6,6 @@ problem against central finite differences of warm-started re-solves; the reduce
 take-off against the same, with the active set checked to be unchanged by the perturbations.
 """
 
-import dataclasses
 import functools
 
 import jax
@@ -177,7 +176,6 @@ def test_qp_jvp_is_the_transpose_of_vjp_and_the_diagnostics_are_clean(qp):
         assert int(diagnostics.cycles) >= 1
 
 
-@pytest.mark.slow  # ≈ 55 s of compiling: keeps the default run under 20 minutes
 def test_gradient_is_nan_when_the_solve_did_not_converge():
     """An unconverged solve has no KKT point to differentiate: strict mode says so with NaN."""
     stopped = ip.Options(max_iterations=2)
@@ -268,7 +266,6 @@ def test_nonlinear_gradient_matches_central_differences_of_warm_started_solves()
         assert abs(float(grad[name]) - difference) <= 1e-4 * abs(difference), (name, float(grad[name]), difference)
 
 
-@pytest.mark.slow  # ≈ 50 s of compiling: keeps the default run under 20 minutes
 def test_integer_leaves_get_float0_and_the_rest_matches():
     base = jax.jit(ip.solve, static_argnames="options")(_swing(SWING_PARAMETERS), jnp.zeros((SWING_KNOTS, 3)),
                                                          jnp.ones(1), options=TIGHT)

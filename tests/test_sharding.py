@@ -21,7 +21,6 @@ import subprocess
 import sys
 import textwrap
 
-import pytest
 
 SCRIPT = textwrap.dedent("""
     import dataclasses, json
@@ -70,9 +69,10 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
-@pytest.mark.slow  # two compilations of the robot's batched solve from a cold cache: ≈ 4 min, the default run's tail
 def test_a_batch_sharded_over_two_devices_gives_the_unsharded_answers():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    # The suite's XLA flags (conftest) kept, so that the subprocess compiles as fast as the tests do.
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
+    env = dict(os.environ, XLA_FLAGS=flags)
     done = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, env=env, timeout=1500)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])

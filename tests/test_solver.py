@@ -85,7 +85,7 @@ def test_equality_constrained_qp_matches_dense_kkt():
     solution = solve(integrator(), jnp.zeros((K, 3)), jnp.zeros(1), options=OPTIONS)
     assert ip.Status(int(solution.status)) is ip.Status.CONVERGED
     found = np.concatenate([np.asarray(solution.Z).reshape(-1), solution.theta])
-    assert np.abs(found - _dense_kkt_solution()).max() <= 1e-7
+    assert np.abs(found - _dense_kkt_solution()).max() <= 1e-11  # one Newton step solves a QP (seen: 3.9e-13)
     assert float(solution.violation) <= 1e-9
     assert np.isfinite(np.asarray(solution.history)[: int(solution.iterations)]).all()
 
@@ -126,7 +126,6 @@ def test_nonlinear_inequality_matches_the_equivalent_box():
     assert np.all(np.asarray(inequality.multipliers.path_inequality) >= -1e-12)
 
 
-@pytest.mark.slow  # ≈ 83 s of compiling; vmap over initial guesses stays in the default run: keeps the default run under 20 minutes
 def test_vmap_over_parameters_equals_a_loop():
     targets = jnp.array([0.0, 1.0, 3.0])
     starts = jnp.array([1.0, -0.5, 0.2])
@@ -138,7 +137,7 @@ def test_vmap_over_parameters_equals_a_loop():
         assert np.allclose(batched.Z[i], single.Z, atol=1e-10)
         assert int(batched.status[i]) == int(single.status) == ip.Status.CONVERGED
         expected = _dense_kkt_solution(a=float(targets[i]), start=float(starts[i]))
-        assert np.abs(np.concatenate([np.asarray(single.Z).reshape(-1), single.theta]) - expected).max() <= 1e-7
+        assert np.abs(np.concatenate([np.asarray(single.Z).reshape(-1), single.theta]) - expected).max() <= 1e-11
 
 
 def _out_of_reach(u_max):
@@ -234,7 +233,6 @@ def test_the_restoration_phase_leaves_the_infeasible_point_of_wachter_and_biegle
             assert np.abs(np.asarray(stuck.Z[:, 1:])).max() <= 1e-6
 
 
-@pytest.mark.slow  # three compiled solves (≈ 47 s): keeps the default run under 20 minutes
 def test_slacks_start_at_the_rows_of_the_pushed_guess_and_every_slack_setting_reaches_the_same_optimum():
     """``Options.slack_start``: ``"pushed"`` (default) starts the slacks at the rows' values at the
     guess pushed inside its bounds (IPOPT's), ``"guess"`` at the guess itself; ``ipopt_slacks``
@@ -310,9 +308,10 @@ def test_complementarity_problem():
     solution = solve(nlp, Z0, jnp.zeros(1), options=ip.Options(tolerance=1e-8, stationarity=1e-6))
     assert ip.Status(int(solution.status)) is ip.Status.CONVERGED, ip.Status(int(solution.status)).message
     Z = np.asarray(solution.Z)
-    assert np.abs(Z - np.array([[1.0, 0.0], [0.0, 1.0]])).max() <= 1e-3
+    # The last barrier parameter's relaxation leaves the point near the vertex (seen: 5e-10 from it).
+    assert np.abs(Z - np.array([[1.0, 0.0], [0.0, 1.0]])).max() <= 1e-8
     assert float(solution.violation) <= 1e-8
-    assert abs(float(solution.objective) - 2.0) <= 1e-3
+    assert abs(float(solution.objective) - 2.0) <= 1e-8
 
 
 
@@ -432,7 +431,6 @@ def test_a_filter_entry_does_not_reject_the_point_it_was_made_from():
 advance = jax.jit(ip.advance, static_argnames="options")
 
 
-@pytest.mark.slow  # ≈ 55 s of compiling: keeps the default run under 20 minutes
 def test_a_filter_that_rejects_every_trial_leaves_the_soft_restoration_step():
     """When the line search turns every trial down (here a filter entry at zero infeasibility,
     and no filter resets), IPOPT's soft restoration takes the Newton step to its
@@ -481,3 +479,25 @@ def test_a_soft_restoration_step_is_judged_at_the_next_iteration():
         assert same == turned_down
         if turned_down:
             np.testing.assert_array_equal(np.asarray(after.history[3]), np.asarray(expected.history[3]))
+
+
+def test_a_solve_stopped_on_a_pending_soft_restoration_step_judges_it_first():
+    """Stopped at the iteration that took a soft-restoration step (``until``), ``advance`` keeps or
+    undoes the step without taking another, so that a stopped solve (time budget, Ctrl-C,
+    iteration cap) holds the iterate the whole solve has there, and going on from it is the
+    whole solve."""
+    nlp = integrator(CAPPED, energy_cap=0.01)
+    start = ip.start(nlp, jnp.zeros((K, 3)), jnp.zeros(1), OPTIONS)
+    earlier, without = (advance(nlp, start, OPTIONS, n) for n in (2, 3))
+    for reference, turned_down in ((0.0, True), (np.inf, False)):
+        pending = dataclasses.replace(earlier, iterations=without.iterations, soft=ip.SoftStep(
+            jnp.asarray(True), jnp.asarray(reference, without.soft.reference.dtype), _without_refusal(without)))
+        stopped = advance(nlp, pending, OPTIONS, 3)
+        assert int(stopped.iterations) == 3 and not bool(stopped.soft.pending)
+        held = without if turned_down else pending
+        for a, b in zip(jax.tree.leaves(stopped.iterate), jax.tree.leaves(held.iterate)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        whole, sliced = advance(nlp, pending, OPTIONS, 5), advance(nlp, stopped, OPTIONS, 5)
+        for a, b in zip(jax.tree.leaves(whole.iterate), jax.tree.leaves(sliced.iterate)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+

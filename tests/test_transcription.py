@@ -6,10 +6,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 import jaxmm
 from jaxmm.tasks import SCENARIOS, build_task, initial_guess, scenario
 from jaxmm.transcription import constraints, costs
+from jaxmm.transcription.problem import Weights
 from jaxmm.transcription import nlp as transcription
 from jaxmm import stagewise
 from jaxmm.transcription import variables as jaxmm_variables
@@ -99,15 +101,61 @@ def test_residual_families_match_the_formulation():
         assert np.allclose(split[name], values[name], atol=1e-12), name
 
 
-def test_cost_split_adds_up_and_knot_sum_matches():
-    task = scenario("walk_to_fly", knots=6)
+def _squares(a):
+    """‖a[k]‖² for each knot k of a (N + 1, ...) array."""
+    return np.sum(np.square(a).reshape(len(a), -1), axis=1)
+
+
+def _eq32_terms(task, trajectory):
+    """The terms of J (eq. 32; docs/formulation.md, "Cost") written out in NumPy, the SO(3) log
+    of l_0 by SciPy: {running, final, initial, slack, horizon}."""
+    w = {f.name: float(getattr(task.weights, f.name)) for f in dataclasses.fields(task.weights)}
+    x = jax.tree.map(np.asarray, trajectory.knots)
+    reference = np.asarray(task.params.reference_configuration)
+    posture = x.joint_positions - reference[7:]
+    upper = np.isin(np.arange(task.layout.n_joints), task.upper_body_joints)
+    running = dict(com_acc=x.com_acceleration, com_vel=x.com_velocity, com_vel_xy=x.com_velocity[:, :2],
+                   ang_mom_rate=x.angular_momentum_rate, ang_mom=x.angular_momentum,
+                   joint_vel_upper=x.joint_velocities[:, upper], joint_vel_lower=x.joint_velocities[:, ~upper],
+                   posture=posture, force=x.contact_forces, force_rate=x.contact_force_rates, thrust=x.thrust,
+                   throttle=x.throttle, base_orientation=x.base_quaternion - [0.0, 0.0, 0.0, 1.0])
+    l_k = sum(w[name] * _squares(value) for name, value in running.items())
+    momentum = sum(_squares(v) for v in (x.com_velocity, x.com_acceleration, x.angular_momentum,
+                                         x.angular_momentum_rate))
+    rotation = Rotation.from_quat(reference[3:7]).inv() * Rotation.from_quat(x.base_quaternion[0])
+    slacks = np.concatenate([x.normal_slack, x.tangential_slack], axis=1)
+    T = float(trajectory.total_time)
+    return dict(
+        running=T / task.n_intervals * np.sum(l_k[:-1]),
+        final=(w["final_momentum"] * momentum[-1] + w["final_thrust"] * _squares(x.thrust)[-1]
+               + w["final_posture"] * _squares(posture)[-1] + w["final_force"] * _squares(x.contact_forces)[-1]),
+        initial=(w["initial_posture"] * _squares(posture)[0] + w["initial_base_orientation"] * rotation.magnitude() ** 2
+                 + w["initial_force"] * _squares(x.contact_forces)[0]),
+        slack=w["complementarity_slack"] * np.sum(slacks if task.slack_penalty == "linear" else slacks**2),
+        horizon=w["horizon"] * T,
+    )
+
+
+def test_cost_terms_follow_eq_32_and_every_sum_of_them_agrees():
+    """Each term of ``cost_terms`` equals eq. (32) written out independently, with every weight a
+    distinct non-zero value (a term on the wrong field, knot or weight shows), for both slack
+    penalties; the total, the knot-by-knot ``total_cost`` and the NLP's cost equal their sum."""
+    rng = np.random.default_rng(5)
+    weights = {f.name: rng.uniform(0.5, 2.0) for f in dataclasses.fields(Weights)}
+    task = scenario("walk_to_fly", knots=6, weights=weights)
     Z, theta = _random_point(task, seed=2)
     trajectory = transcription.to_trajectory(task, Z, theta)
-    terms = costs.cost_terms(task, trajectory)
-    assert np.isclose(terms["total"], sum(v for k, v in terms.items() if k != "total"), rtol=1e-14)
-    assert np.isclose(terms["total"], costs.total_cost(task, trajectory), rtol=1e-12)
-    nlp = transcription.stagewise_nlp(task)
-    assert np.isclose(jax.jit(stagewise.residuals)(nlp, Z, theta).cost, terms["total"], rtol=1e-12)
+    for penalty in ("linear", "squared"):
+        variant = dataclasses.replace(task, slack_penalty=penalty)
+        terms, expected = costs.cost_terms(variant, trajectory), _eq32_terms(variant, trajectory)
+        for name, value in expected.items():
+            assert np.isclose(terms[name], value, rtol=1e-12, atol=0), (penalty, name)
+        J = sum(expected.values())
+        assert np.isclose(terms["total"], J, rtol=1e-12), penalty
+        assert np.isclose(costs.total_cost(variant, trajectory), J, rtol=1e-12), penalty
+    nlp = transcription.stagewise_nlp(task)  # the published, linear penalty
+    J = sum(_eq32_terms(task, trajectory).values())
+    assert np.isclose(jax.jit(stagewise.residuals)(nlp, Z, theta).cost, J, rtol=1e-12)
 
 
 def test_cost_is_differentiable_in_the_weights():

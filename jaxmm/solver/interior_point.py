@@ -261,11 +261,12 @@ def _zero_hessian(ctx, B):
             jnp.zeros((K, nz, ng), B.cost_zz.dtype), jnp.zeros((ng, ng), B.cost_zz.dtype))
 
 
-def iteration(ctx, state):
+def iteration(ctx, state, judge_only=False):
     """One iteration from ``state``: the NLP's derivatives, the optimality measures and the
     barrier update, the Newton system factored with inertia correction, the trials of the line
     search, and the update (the barrier problem's, or the restoration phase's). Returns the new
-    ``State``."""
+    ``State``. ``judge_only`` (a bool, traced or not): only keep or undo a pending
+    soft-restoration step, taking no new one (a solve stopping at its iteration cap)."""
     problem, b, it = ctx.problem, ctx.problem.bounds, state.iterate
     P, y = it.P, it.y
     # The path multipliers let the blocks carry the path Hessian's kinematic curvature, computed
@@ -281,7 +282,11 @@ def iteration(ctx, state):
     refuse = state.soft.pending & ~(error <= 0.9999 * state.soft.reference)
     # Both outcomes are computed and one is selected: a conditional around the iteration would
     # take the blocks (megabytes) as operands, which XLA copies into its branch.
-    return select(refuse, _refused(ctx, state, refuse), _newton_iteration(ctx, state, B, J, c, dl, du, o, ~refuse))
+    judge_only = jnp.asarray(judge_only)
+    kept = dataclasses.replace(state, soft=SoftStep(jnp.zeros_like(state.soft.pending), state.soft.reference,
+                                                    state.soft.refused))
+    stepped = _newton_iteration(ctx, state, B, J, c, dl, du, o, ~refuse & ~judge_only)
+    return select(refuse, _refused(ctx, state, refuse), select(judge_only, kept, stepped))
 
 
 def _report(ctx, when, k, row):
@@ -484,14 +489,16 @@ def advance(nlp, state, options=Options(), until=None):
 
     ``advance(nlp, advance(nlp, s, o, k), o)`` is ``advance(nlp, s, o)``: a solve can be run in
     slices, with the host deciding between them whether to go on (``solve.solve_task``'s time budget
-    and Ctrl-C)."""
+    and Ctrl-C). A soft-restoration step pending at ``until`` is judged before returning (kept
+    or undone, ``iteration``'s ``judge_only``), so that a stopped solve reports the iterate the
+    whole solve has at that iteration."""
     ctx = context(nlp, state, options)
     limit = options.max_iterations if until is None else jnp.minimum(until, options.max_iterations)
 
     def running(s):
-        return (s.status == int(Status.RUNNING)) & (s.iterations < limit)
+        return (s.status == int(Status.RUNNING)) & ((s.iterations < limit) | s.soft.pending)
 
-    return jax.lax.while_loop(running, lambda s: iteration(ctx, s), state)
+    return jax.lax.while_loop(running, lambda s: iteration(ctx, s, s.iterations >= limit), state)
 
 
 def finish(nlp, state, stopped=Status.MAX_ITERATIONS):
