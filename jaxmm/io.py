@@ -1,6 +1,6 @@
 """Saved solutions: a solved task written to one ``.npz`` file with a JSON header, and read back.
 
-The file (format ``jaxmm-solution``, version 4) holds NumPy arrays only (no pickles) and one
+The file (format ``jaxmm-solution``, version 5) holds NumPy arrays only (no pickles) and one
 JSON header ``__header__``:
 
 * ``format``, ``version``, ``jaxmm_version``, ``saved_at`` (UTC, ISO 8601);
@@ -17,7 +17,8 @@ JSON header ``__header__``:
 Files of versions 1 (before the history recorded the linear solves of each iteration), 2
 (before it marked the restoration phase's iterations) and 3 (before it recorded the
 factorisations of the inertia correction) are read too: their history gets the missing columns
-as NaN.
+as NaN. Files before version 5 (before the complementarity's σ and slack bound were task
+parameters) solved the published relaxation: σ = 0, ε_max = ∞.
 
 Arrays are named by their path in the skeleton (``trajectory.knots.com``). Files are written
 atomically: a temporary file in the same directory, renamed over the target once complete.
@@ -42,8 +43,10 @@ from jaxmm.transcription.problem import Task, TaskParams, Weights
 from jaxmm.transcription.variables import Knot, Trajectory
 
 FORMAT = "jaxmm-solution"
-VERSION = 4
-READABLE_VERSIONS = (1, 2, 3, 4)
+VERSION = 5
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
+# The task parameters added by a version, with the value every older file solved with.
+_ADDED_PARAMS = {5: dict(complementarity_tolerance=0.0, slack_limit=float("inf"))}
 HEADER = "__header__"
 _CLASSES = {cls.__name__: cls for cls in (Trajectory, Knot, ip.Solution, ip.Multipliers, TaskParams, Weights)}
 
@@ -96,6 +99,15 @@ def _decode(skeleton, arrays):
     if key not in arrays:
         raise SolutionFileError(f"array {key!r} is missing from the file")
     return jax.numpy.asarray(arrays[key])
+
+
+def _decode_params(skeleton, arrays, version):
+    """The ``TaskParams`` of a file's skeleton, the parameters newer than its version given the
+    value that version solved with (``_ADDED_PARAMS``)."""
+    added = {name: value for since, names in _ADDED_PARAMS.items() if version < since for name, value in names.items()}
+    fields = {k: v for k, v in skeleton["fields"].items() if k not in added}
+    params = _decode(dict(skeleton, fields=dict(fields, **{k: {"float": 0.0} for k in added})), arrays)
+    return dataclasses.replace(params, **{k: jax.numpy.asarray(v) for k, v in added.items()})
 
 
 def robot_fingerprint(robot):
@@ -232,7 +244,7 @@ def load(path, robot=None):
         spec = header["task"]
         task = Task(
             robot=robot,
-            params=_decode(spec["params"], arrays),
+            params=_decode_params(spec["params"], arrays, header["version"]),
             weights=_decode(spec["weights"], arrays),
             name=spec["name"],
             n_intervals=int(spec["n_intervals"]),

@@ -86,6 +86,8 @@ def build_task(
     min_dt=0.05,
     max_dt=0.10,
     gravity=(0.0, 0.0, -9.81),
+    complementarity_tolerance=0.0,
+    slack_limit=np.inf,
     zero_initial_thrust=True,
     integration="trapezoidal",
     slack_penalty="linear",
@@ -96,7 +98,8 @@ def build_task(
     knots: N, the number of intervals (N + 1 knots, N ≥ 2). weights: {name: value} or
     ``Weights``. jet_coefficients (nj, 10) and max_thrust (nj,) are required when the robot
     has jets. joint_limits (n, 2) [rad] default to the URDF limits. upper_body_joints: names.
-    Raises ValueError naming the problem for inconsistent input.
+    complementarity_tolerance, slack_limit: the complementarity rows' σ and the slacks' bound
+    (``TaskParams``; the defaults are the published relaxation). Raises ValueError naming the problem for inconsistent input.
     """
     model = robot.model
     nj = len(robot.jet_frames)
@@ -122,9 +125,12 @@ def build_task(
         if not (np.ndim(value) == 0 and np.isfinite(value) and value > 0):
             raise ValueError(f"{label} must be a finite positive number, got {value!r}")
     for label, value in (("boundary_tolerance", boundary_tolerance),
-                         ("final_orientation_tolerance", final_orientation_tolerance)):
+                         ("final_orientation_tolerance", final_orientation_tolerance),
+                         ("complementarity_tolerance", complementarity_tolerance)):
         if not (np.ndim(value) == 0 and np.isfinite(value) and value >= 0):
             raise ValueError(f"{label} must be a finite non-negative number, got {value!r}")
+    if not (np.ndim(slack_limit) == 0 and slack_limit >= 0):
+        raise ValueError(f"slack_limit must be a non-negative number (inf: unbounded), got {slack_limit!r}")
     if mid_com_height is not None and not np.isfinite(mid_com_height):
         raise ValueError(f"mid_com_height must be finite (or None: no mid-horizon target), got {mid_com_height!r}")
     throttle = _vector(throttle_range, 2, "throttle_range")
@@ -163,6 +169,8 @@ def build_task(
         min_dt=jnp.asarray(float(min_dt)),
         max_dt=jnp.asarray(float(max_dt)),
         gravity=jnp.asarray(_vector(gravity, 3, "gravity")),
+        complementarity_tolerance=jnp.asarray(float(complementarity_tolerance)),
+        slack_limit=jnp.asarray(float(slack_limit)),
     )
     return Task(
         robot=robot,
@@ -175,6 +183,23 @@ def build_task(
         slack_penalty=slack_penalty,
         upper_body_joints=tuple(model.joint_index(j) for j in upper_body_joints),
     )
+
+
+def exact_complementarity(task, tolerance=1e-6):
+    """``task`` with Scholtes' relaxation of the contact complementarity in place of the published
+    one: f_z c_z ≤ σ and |f_z Δc| ≤ σ (eq. 20, 21) with σ = tolerance [N m] and the slacks ε_n,
+    ε_t fixed at 0, so that a corner c_z above the ground carries at most σ / c_z [N].
+
+    Its NLP has the published one's structure (σ and the slacks' bound are data), so one compiled
+    solve serves both. From the published guess it is harder to solve; warm-started from the
+    published task's answer, ``solve_task(exact_complementarity(task), warm_start=relaxed)``, it
+    moves an optimum that buys force on a corner in the air to a physical one nearby.
+    """
+    if not (np.ndim(tolerance) == 0 and np.isfinite(tolerance) and tolerance >= 0):
+        raise ValueError(f"tolerance must be a finite non-negative number [N m], got {tolerance!r}")
+    params = dataclasses.replace(task.params, complementarity_tolerance=jnp.asarray(float(tolerance)),
+                                 slack_limit=jnp.asarray(0.0))
+    return dataclasses.replace(task, params=params)
 
 
 def _array(value, shape, label):

@@ -45,7 +45,7 @@ CASES = {  # name: (task with the parameter set to a value, its cotangent in tas
     "final CoM height": (_final_height, lambda bar: bar.params.final_com[2], lambda task: task.params.final_com[2], 1e-3),
     "weight com_vel": (_weight("com_vel"), lambda bar: bar.weights.com_vel, lambda task: task.weights.com_vel, 1e-2),
     "weight final_thrust": (_weight("final_thrust"), lambda bar: bar.weights.final_thrust,
-                            lambda task: task.weights.final_thrust, 1e-3),
+                            lambda task: task.weights.final_thrust, 1e-2),
 }
 
 
@@ -72,7 +72,11 @@ def test_the_take_off_gradient_matches_central_differences_of_re_solves(polished
     agrees to 5e-8. And the step must make J(p ± h) differ by more than the re-solves' own
     accuracy (they stop after 2–4 iterations once within tolerance): h = 1e-4 p gave 5e-4 on
     the height and com_vel; the steps used give 4.5e-7 (height, 1e-3), 3.8e-5 (com_vel, 1e-2;
-    its derivative is tiny: −1.8e-7 N s per unit of a 1e7 weight) and 5.5e-7 (final_thrust, 1e-3).
+    its derivative is tiny: −1.8e-7 N s per unit of a 1e7 weight) and ≈ 4e-6 (final_thrust, 1e-2).
+    For final_thrust, 1e-3 is too small where the take-off's rounding (one core per process, as
+    the test workers run) leaves a polished point from which the ±h re-solves stop after two
+    iterations on a slope of −0.042 against the optimum's 0.0116, for every h from 1e-4 to 1e-3;
+    at 1e-2 they take 5–6 iterations and agree to ≈ 4e-6 there and to 1e-5 with more threads.
     Tightening the solver's stationarity instead made it worse (20-iteration re-solves, adjoint
     residual 3e-8)."""
     task, result = polished

@@ -73,6 +73,23 @@ def test_an_older_file_is_read_with_its_history_missing_the_newer_columns(saved,
     _leaves_equal(loaded.trajectory, result.trajectory)
 
 
+def test_a_file_before_version_5_solved_the_published_complementarity(saved, tmp_path):
+    """Files written before the complementarity's σ and slack bound were task parameters load with
+    the published relaxation's values (σ = 0, ε_max = ∞), which is what they solved."""
+    path, task, _ = saved
+
+    def as_version_4(arrays):
+        content = json.loads(str(arrays["__header__"]))
+        fields = content["task"]["params"]["fields"]
+        for name in ("complementarity_tolerance", "slack_limit"):
+            del arrays[fields.pop(name)["array"]]
+        arrays["__header__"] = np.array(json.dumps({**content, "version": 4}))
+
+    loaded, _ = io.load(_rewrite(path, tmp_path / "version_4.npz", as_version_4))
+    assert float(loaded.params.complementarity_tolerance) == 0.0 and float(loaded.params.slack_limit) == np.inf
+    _leaves_equal(loaded.params, task.params)
+
+
 def test_a_file_from_another_robot_is_refused(saved, ironcub):
     path, _, _ = saved
     without_jets = dataclasses.replace(ironcub, jet_frames=())

@@ -155,11 +155,13 @@ def test_reference_is_smooth_at_the_initial_guess(build):
         np.testing.assert_allclose(values[name], 0.0, atol=1e-15)
 
 
-@pytest.mark.parametrize("name", ["take_off", "take_off_and_landing"])
-def test_bounds_match_jax(build, name):
+@pytest.mark.parametrize("name, options", [("take_off", {}), ("take_off_and_landing", {}),
+                                           ("take_off", dict(complementarity_tolerance=1e-6, slack_limit=0.0))],
+                         ids=["take_off", "take_off_and_landing", "take_off-exact_complementarity"])
+def test_bounds_match_jax(build, name, options):
     """Inequality bounds and variable boxes (boundary conditions, with and without a
-    mid-horizon height) agree."""
-    task, nlp = build(name)
+    mid-horizon height; the published complementarity and Scholtes' without slacks) agree."""
+    task, nlp = build(name, **options)
     ours = constraints.inequality_bounds(task)
     for name, (lower, upper) in nlp.inequality_bounds().items():
         np.testing.assert_array_equal(np.asarray(ours[name][0]), lower, err_msg=name)

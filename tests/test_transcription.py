@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import jaxmm
+from jaxmm import tasks
 from jaxmm.tasks import SCENARIOS, build_task, initial_guess, scenario
 from jaxmm.transcription import constraints, costs
 from jaxmm.transcription.problem import Weights
@@ -230,11 +231,38 @@ def test_every_unbounded_variable_enters_the_cost_or_a_constraint(name):
     (dict(integration="rk4"), "integration must be one of"),
     (dict(min_dt=-0.1), "time-step bounds"),
     (dict(jet_coefficients=np.zeros((4, 9))), r"jet_coefficients must have shape \(4, 10\)"),
+    (dict(complementarity_tolerance=-1e-6), "complementarity_tolerance must be a finite non-negative number"),
+    (dict(slack_limit=-1.0), "slack_limit must be a non-negative number"),
 ])
 def test_bad_task_input(kwargs, message):
     knots = kwargs.pop("knots", 10)
     with pytest.raises(ValueError, match=message):
         scenario("take_off", knots=knots, **kwargs)
+
+
+def test_exact_complementarity_bounds_the_products_by_sigma_and_fixes_the_slacks():
+    """Scholtes' relaxation (``tasks.exact_complementarity``): the normal rows f_z c_z − ε_n ≤ σ,
+    the planar rows f_z Δc ∓ ε_t within ±σ, the slacks boxed to [0, 0]; everything else as
+    published, and the leaf types unchanged (the compiled solve is shared)."""
+    task = scenario("take_off", knots=6)
+    exact = tasks.exact_complementarity(task, 2e-6)
+    nc = len(task.robot.contact_frames)
+    published, bounds = constraints.inequality_bounds(task), constraints.inequality_bounds(exact)
+    np.testing.assert_array_equal(bounds["normal_complementarity"][1], np.full(nc, 2e-6))
+    np.testing.assert_array_equal(published["normal_complementarity"][1], np.zeros(nc))
+    np.testing.assert_array_equal(bounds["planar_complementarity"][0][2 * nc:], np.full(2 * nc, -2e-6))
+    np.testing.assert_array_equal(bounds["planar_complementarity"][1][:2 * nc], np.full(2 * nc, 2e-6))
+    for name in ("friction_cone", "corner_com", "jet_com"):
+        for ours, theirs in zip(bounds[name], published[name]):
+            np.testing.assert_array_equal(ours, theirs)
+    (lower, upper), (_, published_upper) = constraints.variable_bounds(exact), constraints.variable_bounds(task)
+    for name in ("normal_slack", "tangential_slack"):
+        np.testing.assert_array_equal(getattr(lower.knots, name), 0.0)
+        np.testing.assert_array_equal(getattr(upper.knots, name), 0.0)
+        assert np.all(np.isinf(getattr(published_upper.knots, name)))
+    assert jax.tree.map(jax.typeof, exact) == jax.tree.map(jax.typeof, task)
+    with pytest.raises(ValueError, match="tolerance must be a finite non-negative number"):
+        tasks.exact_complementarity(task, -1.0)
 
 
 def test_unknown_scenario_and_missing_jet_model():

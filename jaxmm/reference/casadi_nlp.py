@@ -462,14 +462,15 @@ class ReferenceNLP:
         nc, nj = self.layout.n_contacts, self.layout.n_jets
         P = self._numbers.params
         corner, jet = np.tile(P["corner_com_bound"], nc), np.full(3 * nj, float(P["jet_com_bound"]))
+        sigma = np.full(2 * nc, float(P["complementarity_tolerance"]))  # eq. (20, 21) relaxed by σ
         return {
             "friction_cone": (np.full(4 * nc, -np.inf), np.zeros(4 * nc)),
-            "normal_complementarity": (np.full(nc, -np.inf), np.zeros(nc)),
+            "normal_complementarity": (np.full(nc, -np.inf), sigma[:nc]),
             "corner_com": (-corner, corner),
             "jet_com": (-jet, jet),
             "planar_complementarity": (
-                np.concatenate([np.full(2 * nc, -np.inf), np.zeros(2 * nc)]),
-                np.concatenate([np.zeros(2 * nc), np.full(2 * nc, np.inf)]),
+                np.concatenate([np.full(2 * nc, -np.inf), -sigma]),
+                np.concatenate([sigma, np.full(2 * nc, np.inf)]),
             ),
         }
 
@@ -615,7 +616,7 @@ def _knot_boxes(task, P):
     low, high = P["throttle_range"]
     fields["throttle"] = (np.full(layout.n_jets, low), np.full(layout.n_jets, high))
     for name in ("normal_slack", "tangential_slack"):
-        fields[name] = (np.zeros(nc), np.full(nc, np.inf))
+        fields[name] = (np.zeros(nc), np.full(nc, float(P["slack_limit"])))
     lower = np.concatenate([np.ravel(fields[name][0]) for name in FIELDS])
     upper = np.concatenate([np.ravel(fields[name][1]) for name in FIELDS])
     return np.tile(lower, (task.n_knots, 1)), np.tile(upper, (task.n_knots, 1))

@@ -147,15 +147,16 @@ def inequality_bounds(task):
     nc, nj = len(task.robot.contact_frames), len(task.robot.jet_frames)
     corner = jnp.tile(task.params.corner_com_bound, nc)
     jet = jnp.full(3 * nj, 1.0) * task.params.jet_com_bound
+    sigma = jnp.full(2 * nc, 1.0) * task.params.complementarity_tolerance  # σ of eq. (20, 21)
     inf = jnp.inf
     return dict(
         friction_cone=(jnp.full(4 * nc, -inf), jnp.zeros(4 * nc)),
-        normal_complementarity=(jnp.full(nc, -inf), jnp.zeros(nc)),
+        normal_complementarity=(jnp.full(nc, -inf), sigma[:nc]),
         corner_com=(-corner, corner),
         jet_com=(-jet, jet),
         planar_complementarity=(
-            jnp.concatenate([jnp.full(2 * nc, -inf), jnp.zeros(2 * nc)]),
-            jnp.concatenate([jnp.zeros(2 * nc), jnp.full(2 * nc, inf)]),
+            jnp.concatenate([jnp.full(2 * nc, -inf), -sigma]),
+            jnp.concatenate([sigma, jnp.full(2 * nc, inf)]),
         ),
     )
 
@@ -223,8 +224,8 @@ def variable_bounds(task):
         box("thrust", 0.0, tol, knots=0)
         box("thrust_rate", -tol, tol, knots=0)
     box("throttle", p.throttle_range[0], p.throttle_range[1])
-    box("normal_slack", 0.0, None)
-    box("tangential_slack", 0.0, None)
+    box("normal_slack", 0.0, p.slack_limit)
+    box("tangential_slack", 0.0, p.slack_limit)
     N = task.n_intervals
     return (
         Trajectory(layout.unflatten(bounds[0]), N * p.min_dt),

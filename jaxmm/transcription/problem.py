@@ -87,7 +87,10 @@ class TaskParams:
     joint_limits: (n, 2) [rad]; joint_velocity_limit [rad/s]; base_linear_velocity_limit [m/s];
     base_angular_velocity_limit [rad/s]; com_xy_limit [m]; boundary_tolerance: initial
     equilibrium/orientation tolerance; final_orientation_tolerance; min_dt, max_dt [s];
-    gravity: (3,) [m/s²].
+    gravity: (3,) [m/s²]; complementarity_tolerance: () σ ≥ 0 [N m] and slack_limit: () ε_max
+    ≥ 0 of the complementarity rows f_z c_z − ε_n ≤ σ, |f_z Δc − ε_t| ≤ σ with 0 ≤ ε ≤ ε_max
+    (eq. 20, 21): the published relaxation is σ = 0, ε_max = ∞ (slacks paid for in the cost);
+    σ > 0, ε_max = 0 is Scholtes' relaxation without slacks (``tasks.exact_complementarity``).
     """
 
     initial_com: jax.Array
@@ -110,6 +113,8 @@ class TaskParams:
     min_dt: jax.Array
     max_dt: jax.Array
     gravity: jax.Array
+    complementarity_tolerance: jax.Array
+    slack_limit: jax.Array
 
 
 @jax.tree_util.register_dataclass
