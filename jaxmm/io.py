@@ -105,9 +105,9 @@ def _decode_params(skeleton, arrays, version):
     """The ``TaskParams`` of a file's skeleton, the parameters newer than its version given the
     value that version solved with (``_ADDED_PARAMS``)."""
     added = {name: value for since, names in _ADDED_PARAMS.items() if version < since for name, value in names.items()}
-    fields = {k: v for k, v in skeleton["fields"].items() if k not in added}
-    params = _decode(dict(skeleton, fields=dict(fields, **{k: {"float": 0.0} for k in added})), arrays)
-    return dataclasses.replace(params, **{k: jax.numpy.asarray(v) for k, v in added.items()})
+    fields = dict(skeleton["fields"], **{name: {"float": value} for name, value in added.items()})
+    params = _decode(dict(skeleton, fields=fields), arrays)
+    return dataclasses.replace(params, **{name: jax.numpy.asarray(getattr(params, name)) for name in added})
 
 
 def robot_fingerprint(robot):

@@ -99,7 +99,8 @@ def build_task(
     ``Weights``. jet_coefficients (nj, 10) and max_thrust (nj,) are required when the robot
     has jets. joint_limits (n, 2) [rad] default to the URDF limits. upper_body_joints: names.
     complementarity_tolerance, slack_limit: the complementarity rows' σ and the slacks' bound
-    (``TaskParams``; the defaults are the published relaxation). Raises ValueError naming the problem for inconsistent input.
+    (``TaskParams``; the defaults are the published relaxation). Raises ValueError naming the
+    problem for inconsistent input.
     """
     model = robot.model
     nj = len(robot.jet_frames)

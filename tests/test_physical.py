@@ -34,6 +34,9 @@ def _solved(name, overrides):
     return _SOLVED[key]
 
 
+# Expected failures, strict: these variants converge to an unphysical optimum of the published NLP
+# (measured: 7.2 N, 28 N and 28 N on corners above 1 cm); the complementarity treatment that makes
+# them physical by default is not built yet, and a strict mark turns red once it is.
 PUSHES_IN_THE_AIR = pytest.mark.xfail(
     strict=True, reason="the relaxed contact complementarity lets a corner off the ground push (paid for with slack)")
 
