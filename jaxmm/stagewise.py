@@ -33,8 +33,9 @@ class StagewiseFunctions:
     the Hessian of y_e·e + y_g·g w.r.t. (z, θ), for NLPs that know a faster way than
     ``jax.hessian``; linearisation: what ``path_jacobian`` returned at (z, θ), or None (then
     the function computes what it needs itself);
-    knot_cost_hessian (optional): (args, z, θ, d) → (∂²φ/∂z² (nz, nz), ∂²φ/∂z∂θ (nz, ng),
-    ∂²φ/∂θ² (ng, ng)), likewise;
+    knot_cost_derivatives (optional): (args, z, θ, d) → ((∂φ/∂z (nz,), ∂φ/∂θ (ng,)),
+    (∂²φ/∂z² (nz, nz), ∂²φ/∂z∂θ (nz, ng), ∂²φ/∂θ² (ng, ng))), the knot cost's gradient and
+    Hessian from one pass, likewise;
     transition_curvature_columns (optional): (args) → the columns of (z_k, z_{k+1}) (a tuple of
     ints in 0..2 nz − 1, static: from args' static fields) in which the transition functions
     are nonlinear for a fixed θ; they must be linear in every other entry. The solver then
@@ -60,7 +61,7 @@ class StagewiseFunctions:
     path_inequality: Callable
     transition_inequality: Callable
     path_hessian: Callable | None = None
-    knot_cost_hessian: Callable | None = None
+    knot_cost_derivatives: Callable | None = None
     transition_curvature_columns: Callable | None = None
     row_supports: Callable | None = None
     path_jacobian: Callable | None = None
@@ -193,14 +194,15 @@ def blocks(nlp, Z, theta, path_multipliers=None):
     def transition(fn):
         return jax.vmap(jax.jacfwd(fn, argnums=(1, 2, 3)), in_axes=(None, 0, 0, None))(a, Z[:-1], Z[1:], theta)
 
-    knot_grad = jax.grad(f.knot_cost, argnums=(1, 2))
-    cost_z, cost_theta = jax.vmap(knot_grad, in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
-    if f.knot_cost_hessian is None:
-        hessian = jax.vmap(jax.jacfwd(knot_grad, argnums=(1, 2)), in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
-        (cost_zz, cost_ztheta), (_, cost_thetatheta) = hessian
-    else:
-        cost_zz, cost_ztheta, cost_thetatheta = jax.vmap(f.knot_cost_hessian, in_axes=(None, 0, None, 0))(
-            a, Z, theta, nlp.knot_data)
+    def knot_cost_derivatives(args, z, theta, d):
+        if f.knot_cost_derivatives is not None:
+            return f.knot_cost_derivatives(args, z, theta, d)
+        knot_grad = jax.grad(f.knot_cost, argnums=(1, 2))
+        (zz, ztheta), (_, thetatheta) = jax.jacfwd(knot_grad, argnums=(1, 2))(args, z, theta, d)
+        return knot_grad(args, z, theta, d), (zz, ztheta, thetatheta)
+
+    (cost_z, cost_theta), (cost_zz, cost_ztheta, cost_thetatheta) = jax.vmap(
+        knot_cost_derivatives, in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
     global_grad = jax.grad(f.global_cost, argnums=1)
     (pe_z, pe_theta), (pi_z, pi_theta), linearisation = jax.vmap(path_jacobian, in_axes=(None, 0, None) + (0,) * len(y))(
         a, Z, theta, *y)

@@ -27,25 +27,32 @@ def _knot_cost(task, z, theta, role):
     return costs.knot_cost(task, task.weights, _knot(task, z), theta[0], role)
 
 
-def _knot_cost_hessian(task, z, theta, role):
-    """Hessian blocks (∂²/∂z̃², ∂²/∂z̃∂θ, ∂²/∂θ²) of one knot's cost, exact. The cost (eq. 32) is a
-    weighted sum of squares of single entries of z̃ (a diagonal Hessian, read off one
-    Hessian-vector product with ones) but for the base quaternion's SO(3) log at knot 0 (a 4 × 4
-    ``jax.hessian``) and T_total, which multiplies the running terms (its row by
-    forward-over-reverse): 6 passes instead of nz + ng."""
+def _knot_cost_derivatives(task, z, theta, role):
+    """Gradient (∂/∂z̃, ∂/∂θ) and Hessian blocks (∂²/∂z̃², ∂²/∂z̃∂θ, ∂²/∂θ²) of one knot's cost,
+    exact, from one forward-over-reverse pass. The cost (eq. 32) is a weighted sum of squares of
+    single entries of z̃ (a diagonal Hessian, read off one Hessian-vector product with ones) but
+    for the base quaternion's SO(3) log at knot 0 (4 tangents) and T_total, which multiplies the
+    running terms (ng tangents): 5 + ng tangents, the gradient their shared primal."""
     nz = z.shape[0]
-    quaternion = _columns(task.layout, "base_quaternion")
+    quaternion = np.asarray(_columns(task.layout, "base_quaternion"))
     squares = np.setdiff1d(np.arange(nz), quaternion)
     w0 = jnp.concatenate([z, theta])
+    ng = theta.shape[0]
+    tangents = np.zeros((1 + quaternion.size + ng, nz + ng))
+    tangents[0, squares] = 1.0
+    tangents[1 + np.arange(quaternion.size), quaternion] = 1.0
+    tangents[1 + quaternion.size + np.arange(ng), nz + np.arange(ng)] = 1.0
 
     def cost(w):
         return _knot_cost(task, w[:nz], w[nz:], role)
 
-    ones = jnp.zeros_like(w0).at[squares].set(1.0)
-    diagonal = jax.jvp(jax.grad(cost), (w0,), (ones,))[1]
-    hessian = _hessian_over(cost, w0, quaternion).at[squares, squares].set(diagonal[squares])
-    hessian = _with_global_rows(cost, w0, nz, hessian)
-    return hessian[:nz, :nz], hessian[:nz, nz:], hessian[nz:, nz:]
+    gradient, products = jax.vmap(lambda e: jax.jvp(jax.grad(cost), (w0,), (e,)), out_axes=(None, 0))(
+        jnp.asarray(tangents, w0.dtype))
+    diagonal, rotation, globals_ = products[0], products[1:1 + quaternion.size], products[1 + quaternion.size:]
+    hessian = jnp.diag(jnp.zeros_like(w0).at[squares].set(diagonal[squares]))
+    hessian = hessian.at[np.ix_(quaternion, quaternion)].set(rotation[:, quaternion])
+    hessian = hessian.at[:, nz:].set(globals_.T).at[nz:, :].set(globals_)
+    return (gradient[:nz], gradient[nz:]), (hessian[:nz, :nz], hessian[:nz, nz:], hessian[nz:, nz:])
 
 
 def _global_cost(task, theta):
@@ -197,19 +204,6 @@ def _transition_curvature_columns(task):
     return tuple(int(c) for c in np.sort(columns))
 
 
-def _hessian_over(fn, w0, columns):
-    """Hessian of fn at w0 when fn is linear in every entry of w0 but ``columns``: forward over
-    reverse over those alone (len(columns) tangents instead of len(w0)), 16 tangents at a time
-    (``jax.hessian``'s all at once ran 1.5–1.9× slower on a CPU for 122 tangents and 71 knots),
-    scattered into (n, n)."""
-    columns = np.asarray(columns)
-    v0 = w0[columns]
-    gradient = jax.grad(lambda v: fn(w0.at[columns].set(v)))
-    tangents = jnp.eye(columns.size, dtype=w0.dtype)
-    inner = jax.lax.map(lambda e: jax.jvp(gradient, (v0,), (e,))[1], tangents, batch_size=16)
-    return _embedded(inner, columns, w0.shape[0])
-
-
 def _embedded(block, columns, size):
     """The (c, c) ``block`` at the rows and columns ``columns`` (static, increasing) of a
     (size, size) zero matrix, from slices of it and zeros: XLA's CPU scatter into zeros is
@@ -232,7 +226,9 @@ def _embedded(block, columns, size):
 
 
 def _linearised_hessian(fn, fixed, w0, columns, through, curvature):
-    """``_hessian_over(fn, w0, columns)`` plus ``curvature`` (t, t) in the block of ``through``,
+    """Hessian of fn at w0 over ``columns`` (fn is linear in every other entry of w0), by forward
+    over reverse, 16 tangents at a time (``jax.hessian``'s all at once ran 1.5–1.9× slower on a
+    CPU for 122 tangents and 71 knots), plus ``curvature`` (t, t) in the block of ``through``,
     for fn(w) = φ(w, κ(w)) with κ affine in w[through] alone (``_linearised``) and fixed(w) =
     φ(w, κ(w0)): only the tangents of ``through`` (⊂ columns, consecutive among them) go through
     κ's products, which dominate (30 of iRonCub's 122 tangents); the Hessian among the other
@@ -254,13 +250,6 @@ def _linearised_hessian(fn, fixed, w0, columns, through, curvature):
                        [across[:, :a], across[:, a:b] + curvature, across[:, b:]],
                        [among[a:, :a], across[:, b:].T, among[a:, a:]]])
     return _embedded(inner, columns, w0.shape[0])
-
-
-def _with_global_rows(fn, w0, start, hessian):
-    """``hessian`` of fn at w0 with the rows and columns of the globals w0[start:] (θ) set exactly,
-    by forward-over-reverse with ng tangents."""
-    columns = jax.jacfwd(lambda th: jax.grad(fn)(w0.at[start:].set(th)))(w0[start:])  # (n, ng)
-    return hessian.at[:, start:].set(columns).at[start:, :].set(columns.T)
 
 
 def _transition_inequality(task, z, z_next, theta):
@@ -287,7 +276,7 @@ def _row_supports(task):
 
 FUNCTIONS = StagewiseFunctions(
     knot_cost=_knot_cost,
-    knot_cost_hessian=_knot_cost_hessian,
+    knot_cost_derivatives=_knot_cost_derivatives,
     global_cost=_global_cost,
     path_equality=_path_equality,
     transition_equality=_transition_equality,
