@@ -51,3 +51,23 @@ def test_solver_options_from_the_command_line():
 def test_bad_solver_options_are_named(assignment, message):
     with pytest.raises(ValueError, match=message):
         rounding.solver_options([assignment])
+
+
+def test_task_changes_from_the_command_line():
+    assert rounding.task_overrides(["boundary_tolerance=0.0", "complementarity_tolerance = 1e-6"]) == dict(
+        boundary_tolerance=0.0, complementarity_tolerance=1e-6)
+    with pytest.raises(ValueError, match="no_such_keyword"):
+        rounding.task_overrides(["no_such_keyword=1"])
+
+
+def test_complementarity_of_a_trajectory():
+    task = tasks.scenario("take_off", knots=6)
+    guess = tasks.initial_guess(task)
+    knots = guess.knots
+    forces = knots.contact_forces.at[2, 1, 2].set(5.0)
+    points = knots.contact_points.at[2, 1, 2].set(0.02)
+    lifted = type(guess)(knots=type(knots)(**{**vars(knots), "contact_forces": forces, "contact_points": points,
+                                               "tangential_slack": knots.tangential_slack.at[3, 0].set(0.25)}),
+                         total_time=guess.total_time)
+    assert rounding.complementarity(lifted) == pytest.approx((0.1, 0.25))
+    assert rounding.complementarity(guess) == (0.0, 0.0)

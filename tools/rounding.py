@@ -15,9 +15,12 @@ iteration, the solve time, the objective, the status and ``analysis.validate``; 
 iterations' and solve times' median, minimum and maximum. Compile time apart. ``--option
 name=value`` (repeatable) solves with ``solve.DEFAULT_OPTIONS`` so changed (a Python literal:
 ``--option regularisation_decrease=0.01``): compare a variant with the default by their spreads.
+``--task name=value`` (repeatable) changes the task in the same way (a ``tasks.build_task``
+keyword: ``--task boundary_tolerance=0.0``). Each answer's complementarity is printed beside it:
+the largest product f_z c_z [N m] and the largest slack ε_n, ε_t.
 
 Usage: python tools/rounding.py [--scenario take_off] [--knots N] [--copies 6]
-       [--scale 1e-12] [--seed 0] [--option name=value ...]
+       [--scale 1e-12] [--seed 0] [--option name=value ...] [--task name=value ...]
 """
 
 import os
@@ -53,20 +56,38 @@ def perturbed(guess, scale, seed):
     return type(guess)(knots=knots, total_time=guess.total_time)
 
 
-def solver_options(assignments):
-    """``solve.DEFAULT_OPTIONS`` with the ``name=value`` strings applied (values: Python
-    literals); a ValueError names an unknown option or a value that is not a literal."""
+def assignments(texts, fields, flag):
+    """{name: value} from ``name=value`` strings (values: Python literals); a ValueError names an
+    unknown name (not in ``fields``) or a value that is not a literal."""
     changes = {}
-    fields = {f.name for f in dataclasses.fields(ip.Options)}
-    for text in assignments:
+    for text in texts:
         name, sep, value = text.partition("=")
         if not sep or name.strip() not in fields:
-            raise ValueError(f"--option {text!r}: expected name=value with name one of {', '.join(sorted(fields))}")
+            raise ValueError(f"{flag} {text!r}: expected name=value with name one of {', '.join(sorted(fields))}")
         try:
             changes[name.strip()] = ast.literal_eval(value.strip())
         except (ValueError, SyntaxError):
-            raise ValueError(f"--option {text!r}: {value.strip()!r} is not a Python literal") from None
-    return dataclasses.replace(solve.DEFAULT_OPTIONS, **changes)
+            raise ValueError(f"{flag} {text!r}: {value.strip()!r} is not a Python literal") from None
+    return changes
+
+
+def solver_options(texts):
+    """``solve.DEFAULT_OPTIONS`` with the ``name=value`` strings applied."""
+    fields = {f.name for f in dataclasses.fields(ip.Options)}
+    return dataclasses.replace(solve.DEFAULT_OPTIONS, **assignments(texts, fields, "--option"))
+
+
+def task_overrides(texts):
+    """``tasks.build_task`` keywords from the ``name=value`` strings."""
+    return assignments(texts, set(tasks.build_task.__kwdefaults__), "--task")
+
+
+def complementarity(trajectory):
+    """(the largest f_z c_z [N m], the largest slack ε_n or ε_t) of a trajectory."""
+    knots = trajectory.knots
+    product = np.asarray(knots.contact_forces[..., 2]) * np.asarray(knots.contact_points[..., 2])
+    slack = max(float(np.max(knots.normal_slack, initial=0.0)), float(np.max(knots.tangential_slack, initial=0.0)))
+    return float(np.max(product, initial=0.0)), slack
 
 
 def main():
@@ -78,19 +99,22 @@ def main():
     parser.add_argument("--seed", type=int, default=0, help="seed of the first copy (copy i: seed + i − 1)")
     parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                         help="a solver option changed from the default (repeatable)")
+    parser.add_argument("--task", action="append", default=[], metavar="NAME=VALUE",
+                        help="a build_task keyword changed from the scenario's (repeatable)")
     args = parser.parse_args()
     if args.copies < 0 or not args.scale > 0:
         parser.error("--copies must be ≥ 0 and --scale > 0")
     try:
         options = solver_options(args.option)
+        overrides = task_overrides(args.task)
     except (ValueError, TypeError) as error:
         parser.error(str(error))
     print("\n".join(machine_lines(["jax", "jaxlib", "numpy"])))
-    task = tasks.scenario(args.scenario, knots=args.knots)
+    task = tasks.scenario(args.scenario, knots=args.knots, **overrides)
     guess = tasks.initial_guess(task)
     log(f"{args.scenario} N = {task.n_intervals}: compiling...")
     run, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
-    changed = ", ".join(args.option) or "the default options"
+    changed = ", ".join(args.option + args.task) or "the default options and task"
     print(f"\n{args.scenario}, N = {task.n_intervals}, {changed}: compile {format_time(compile_time)}; "
           f"copies perturbed by a relative {args.scale:g} (seeds {args.seed}..{args.seed + args.copies - 1})\n")
     rows, iterations, times = [], [], []
@@ -101,11 +125,14 @@ def main():
         n = int(result.solution.iterations)
         iterations.append(n)
         times.append(seconds)
+        product, slack = complementarity(result.trajectory)
         rows.append((copy, n, f"{per_iteration(result.solution, 'factorisations'):.2f}", format_time(seconds),
                      f"{float(result.solution.objective):.7g}", result.status.name.lower(),
+                     f"{product:.1e}", f"{slack:.1e}",
                      "ok" if report.ok else f"FAILED ({', '.join(report.failed)})"))
         log(f"copy {copy}: {n} iterations, {format_time(seconds)}, {result.status.name.lower()}")
-    print(render(("copy", "iterations", "factorisations / it.", "solve", "objective", "status", "validate"), rows))
+    print(render(("copy", "iterations", "factorisations / it.", "solve", "objective", "status",
+                  "max f_z c_z", "max ε", "validate"), rows))
     print()
     print(render(("", "median", "min", "max"), [
         ("iterations", statistics.median(iterations), min(iterations), max(iterations)),

@@ -23,24 +23,12 @@ def _axis_rotation(axis, angle):
     return jnp.eye(3) + jnp.sin(angle) * S + (1 - jnp.cos(angle)) * (S @ S)
 
 
-def _jump_rounds(body_parent):
-    """The ancestor index of every entry (bodies, then the world) at each round of pointer
-    jumping: (rounds, nb + 1) static arrays, the world's index nb where a chain has ended."""
-    world = len(body_parent)
-    ancestor = np.array([world if a < 0 else a for a in body_parent] + [world])
-    rounds = []
-    while np.any(ancestor[:-1] != world):
-        rounds.append(ancestor)
-        ancestor = ancestor[ancestor]
-    return rounds
-
-
 def body_poses(model, q):
     """World poses of all bodies.
 
     q: (7 + n,) configuration. Returns rotations (nb, 3, 3) and positions (nb, 3) [m].
-    The poses are composed by pointer jumping, so the traced graph grows with the logarithm
-    of the tree's depth, not with its number of links.
+    The tree is walked one depth level at a time, so the traced graph grows with the depth
+    of the tree, not with its number of links.
     """
     q = check_configuration(model, q)
     topology = model.topology
@@ -52,17 +40,14 @@ def body_poses(model, q):
     slide = jnp.where(prismatic, angles, 0.0)[:, None] * model.joint_axis
     local_p = model.joint_translation + jnp.einsum("jab,jb->ja", model.joint_rotation, slide)
 
-    # Pointer jumping (Wyllie's list ranking on the tree): entry b holds the pose of body b in
-    # the frame of its ancestor a_b; each round composes it with a_b's pose and doubles the jump
-    # a_b ← a_{a_b}. A world entry (the identity, its own ancestor) ends the chains, so
-    # ⌈log2(depth + 1)⌉ rounds reach every body, each one operation over all bodies.
-    R = jnp.concatenate([so3.quaternion_to_rotation(q[3:7])[None], local_R, jnp.eye(3, dtype=q.dtype)[None]])
-    p = jnp.concatenate([q[None, :3], local_p, jnp.zeros((1, 3), q.dtype)])
-    for ancestor in _jump_rounds(topology.body_parent):
-        R_a, p_a = R[ancestor], p[ancestor]
-        p = p_a + jnp.einsum("bij,bj->bi", R_a, p)
-        R = R_a @ R
-    R, p = R[:-1], p[:-1]
+    # Bodies are numbered by depth: each level is a contiguous range, appended in turn.
+    R = so3.quaternion_to_rotation(q[3:7])[None]
+    p = q[None, :3]
+    parent = np.asarray(topology.body_parent)
+    for start, stop in topology.body_levels:
+        R_parent, p_parent = R[parent[start:stop]], p[parent[start:stop]]
+        R = jnp.concatenate([R, R_parent @ local_R[start - 1 : stop - 1]])
+        p = jnp.concatenate([p, p_parent + jnp.einsum("bij,bj->bi", R_parent, local_p[start - 1 : stop - 1])])
     return R, p
 
 
