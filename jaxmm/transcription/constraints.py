@@ -175,6 +175,17 @@ def evaluate(task, trajectory):
     return out
 
 
+def _spread(value, columns, size):
+    """A scalar, or one value per column of ``columns`` (static), as a row of ``size`` entries with
+    the values at those columns (anything elsewhere)."""
+    value = jnp.asarray(value, dtype=float)
+    if value.ndim == 0:
+        return value
+    if np.all(np.diff(columns) == 1):
+        return jnp.pad(value, (int(columns[0]), size - int(columns[-1]) - 1))
+    return jnp.zeros(size).at[columns].set(value)
+
+
 def variable_bounds(task):
     """Boxes on the variables, knot by knot (docs/formulation.md, "Variable boxes").
 
@@ -185,13 +196,20 @@ def variable_bounds(task):
     p = task.params
     layout = task.layout
     slices = layout.slices()
-    bounds = [jnp.full((task.n_knots, layout.size), -jnp.inf), jnp.full((task.n_knots, layout.size), jnp.inf)]
+    shape = (task.n_knots, layout.size)
+    bounds = [jnp.full(shape, -jnp.inf), jnp.full(shape, jnp.inf)]
 
     def box(field, lower, upper, knots=slice(None), entries=slice(None)):
+        # Element-wise selections over static masks, which XLA fuses into a few kernels (an
+        # indexed update per box compiled a scatter kernel each).
         columns = np.arange(slices[field].start, slices[field].stop)[entries]
+        if not columns.size:
+            return
+        mask = np.zeros(shape, bool)
+        mask[np.arange(shape[0])[knots], columns[:, None]] = True
         for side, value in ((0, lower), (1, upper)):
             if value is not None:
-                bounds[side] = bounds[side].at[knots, columns].set(value)
+                bounds[side] = jnp.where(mask, _spread(value, columns, shape[1]), bounds[side])
 
     tol = p.boundary_tolerance
     xy = p.com_xy_limit
