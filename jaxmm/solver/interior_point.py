@@ -62,7 +62,11 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     zl0, zu0 = (ones, ones) if bound_multipliers is None else bound_multipliers
     zl0 = tmap(lambda o, m: jnp.where(m, o, 0.0), zl0, b.has_lower)
     zu0 = tmap(lambda o, m: jnp.where(m, o, 0.0), zu0, b.has_upper)
-    _, c0, residuals = problem.evaluate(P0)
+    if options.slack_start == "pushed":  # P0's primal is the pushed point itself (the push is idempotent)
+        residuals = r0
+        c0 = problem.constraints(P0, r0)
+    else:
+        _, c0, residuals = problem.evaluate(P0)
     envelope = jnp.maximum(1.0, l1(c0))
     v0, _ = violation(nlp, P0[0], P0[1], residuals)
     zero = jnp.asarray(0)
