@@ -197,9 +197,12 @@ def blocks(nlp, Z, theta, path_multipliers=None):
     def knot_cost_derivatives(args, z, theta, d):
         if f.knot_cost_derivatives is not None:
             return f.knot_cost_derivatives(args, z, theta, d)
-        knot_grad = jax.grad(f.knot_cost, argnums=(1, 2))
-        (zz, ztheta), (_, thetatheta) = jax.jacfwd(knot_grad, argnums=(1, 2))(args, z, theta, d)
-        return knot_grad(args, z, theta, d), (zz, ztheta, thetatheta)
+        def gradient(z, theta):
+            g = jax.grad(f.knot_cost, argnums=(1, 2))(args, z, theta, d)
+            return g, g  # the Jacobian's primal is the gradient itself
+
+        ((zz, ztheta), (_, thetatheta)), g = jax.jacfwd(gradient, argnums=(0, 1), has_aux=True)(z, theta)
+        return g, (zz, ztheta, thetatheta)
 
     (cost_z, cost_theta), (cost_zz, cost_ztheta, cost_thetatheta) = jax.vmap(
         knot_cost_derivatives, in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)

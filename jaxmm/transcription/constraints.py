@@ -176,14 +176,14 @@ def evaluate(task, trajectory):
 
 
 def _spread(value, columns, size):
-    """A scalar, or one value per column of ``columns`` (static), as a row of ``size`` entries with
-    the values at those columns (anything elsewhere)."""
+    """A scalar, or one value per column of ``columns`` (static, consecutive), as a row of
+    ``size`` entries with the values at those columns (zeros elsewhere)."""
     value = jnp.asarray(value, dtype=float)
     if value.ndim == 0:
         return value
-    if np.all(np.diff(columns) == 1):
-        return jnp.pad(value, (int(columns[0]), size - int(columns[-1]) - 1))
-    return jnp.zeros(size).at[columns].set(value)
+    if not np.all(np.diff(columns) == 1):
+        raise ValueError("a box with one value per column needs consecutive columns")
+    return jnp.pad(value, (int(columns[0]), size - int(columns[-1]) - 1))
 
 
 def variable_bounds(task):
