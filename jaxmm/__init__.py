@@ -2,9 +2,9 @@
 
 The public API in one screen: load a robot (``load_robot``, ``load_ironcub``), its rigid-body
 quantities (``frame_poses``, ``com_position``, ``centroidal_momentum_matrix``, ...), a task
-(``scenario``, ``build_task``, ``initial_guess``), one way to solve it (``solve_task``), one to
-solve many (``solve_batch``), one to differentiate a found optimum (``gradient``), and its check
-against the physics (``validate``). The layers beneath are subpackages: ``rigid_body``,
+(``scenario``, ``build_task``, ``initial_guess``), one way to solve it (``solve_task``; to exact
+contact complementarity, ``solve_elastic``), one to solve many (``solve_batch``), one to
+differentiate a found optimum (``gradient``), and its check against the physics (``validate``). The layers beneath are subpackages: ``rigid_body``,
 ``robots``, ``physics``, ``stagewise``, ``transcription``, ``solver``, ``analysis``.
 
 Importing jaxmm enables float64 in JAX: every quantity of the library is double precision.
@@ -37,12 +37,13 @@ from jaxmm.rigid_body.kinematics import body_poses, frame_jacobian, frame_pose, 
 from jaxmm.rigid_body.model import Model, Topology, UnknownNameError  # noqa: E402
 from jaxmm.rigid_body.urdf import URDFError, model_from_urdf, read_urdf  # noqa: E402
 from jaxmm.robots import Frame, Robot, assemble_urdf, edit_urdf, load_ironcub, load_robot  # noqa: E402
-from jaxmm.solve import TaskSolution, gradient, solve_task  # noqa: E402
+from jaxmm.solve import ElasticSolution, TaskSolution, gradient, solve_elastic, solve_task  # noqa: E402
 from jaxmm.tasks import SCENARIOS, build_task, initial_guess, scenario  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "ElasticSolution",
     "Frame",
     "Model",
     "Robot",
@@ -78,6 +79,7 @@ __all__ = [
     "scenario",
     "so3",
     "solve_batch",
+    "solve_elastic",
     "solve_task",
     "split_configuration",
     "summarise",

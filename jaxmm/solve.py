@@ -18,7 +18,8 @@ robot model's numbers), by implicit differentiation of the KKT conditions at the
     jax.grad(impulse)(base.weights)
 
 ``gradient`` differentiates a solution already found without solving again: one adjoint solve
-at that solution, compiled apart from the solver.
+at that solution, compiled apart from the solver. ``solve_elastic`` solves a task to exact
+contact complementarity: ``solve_task``, then the elastic-mode continuation on the slack weight.
 
 The derivative is that of the local optimum the solver found, with its active set held fixed
 (smoothed by the final barrier parameter, see ``jaxmm.solver.sensitivity``): it is the true
@@ -27,15 +28,19 @@ the solve did not converge or the KKT system could not be solved accurately (see
 ``sensitivity.Options``).
 """
 
+import dataclasses
+
 import jax
+import jax.numpy as jnp
 
 from jaxmm import programs
+from jaxmm.analysis.validation import complementarity
 from jaxmm.programs import DEFAULT_OPTIONS, WARM_START, TaskSolution
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import sensitivity, stopping
 from jaxmm.transcription import nlp as transcription
 
-__all__ = ["DEFAULT_OPTIONS", "WARM_START", "TaskSolution", "gradient", "solve_task"]
+__all__ = ["DEFAULT_OPTIONS", "WARM_START", "ElasticSolution", "TaskSolution", "gradient", "solve_elastic", "solve_task"]
 
 
 def _differentiable(task, guess, options, warm_start, settings, time_budget, interruptible, same_scaling):
@@ -121,3 +126,72 @@ def gradient(task, result, loss):
     implicit, diagnostics = programs.adjoint(task, solution, (Z_bar, theta_bar))
     total = jax.tree.map(lambda a, b: a if a.dtype == jax.dtypes.float0 else a + b, implicit, direct)
     return value, total, diagnostics
+
+
+@dataclasses.dataclass(frozen=True)
+class ElasticSolution:
+    """The answer of ``solve_elastic``: ``task``, the task its last converged stage solved (the
+    given one with its slack weight raised), and ``result``, that stage's ``TaskSolution``
+    (what ``validate``, ``gradient`` and ``io.save`` take with ``task``). Per stage, the first
+    being ``solve_task`` itself: ``weights`` (w_complementarity_slack), ``iterations``,
+    ``statuses`` (``ip.Status``) and ``products`` (the largest of ``complementarity``'s normal
+    and planar products [N m]; NaN for a stage that did not converge)."""
+
+    task: object
+    result: TaskSolution
+    weights: tuple
+    iterations: tuple
+    statuses: tuple
+    products: tuple
+
+    @property
+    def status(self):
+        return self.result.status
+
+    @property
+    def total_iterations(self):
+        return sum(self.iterations)
+
+
+def _largest_product(trajectory):
+    measure = complementarity(trajectory)
+    return max(measure["normal"], measure["planar"])
+
+
+def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, factor=10.0, max_stages=4):
+    """Solve ``task`` to exact contact complementarity: ``solve_task(task, guess, options)``,
+    then, while a product f_z c_z or |f_z Δc_xy| (eq. 20, 21) is above ``tolerance`` [N m], the
+    same task with its slack weight w_complementarity_slack × ``factor``, warm-started from the
+    last answer, up to ``max_stages`` raises. Returns an ``ElasticSolution``.
+
+    The published relaxation pays for the slacks ε ≥ f_z c_z, |f_z Δc| in the cost (eq. 32): an
+    ℓ1 penalty, which is exact (Anitescu 2005, the elastic mode for MPCCs): once w exceeds the
+    complementarity rows' multipliers the penalised optimum has ε = 0, so that a finite number
+    of raises reaches it. Each stage is a short warm-started solve, and every stage shares one
+    compiled solve (weights are data). With the published slack weight, a task whose optimum
+    buys force on a corner in the air (``validate`` fails) is moved to a physical one nearby.
+
+    A stage that does not converge ends the continuation: the result is then the last
+    converged stage (its status says so), and the failed stage is in ``statuses``. Raises
+    ValueError for a tolerance, factor or stage count out of range, TypeError as ``solve_task``.
+    """
+    if not (tolerance > 0 and factor > 1 and isinstance(max_stages, int) and max_stages >= 0):
+        raise ValueError(f"need tolerance > 0, factor > 1 and an integer max_stages ≥ 0; got {tolerance!r}, "
+                         f"{factor!r}, {max_stages!r}")
+    result = solve_task(task, guess, options)
+    weight = float(task.weights.complementarity_slack)
+    stages = [(weight, int(result.solution.iterations), result.status, _largest_product(result.trajectory))]
+    while result.status == ip.Status.CONVERGED and stages[-1][3] > tolerance and len(stages) <= max_stages:
+        weight *= factor
+        # The same leaf type as a scenario's weights (a float64 array): the stage reuses the compiled solve.
+        weights = dataclasses.replace(task.weights, complementarity_slack=jnp.asarray(weight, dtype=float))
+        raised = dataclasses.replace(task, weights=weights)
+        stage = solve_task(raised, options=options, warm_start=result)
+        converged = stage.status == ip.Status.CONVERGED
+        stages.append((weight, int(stage.solution.iterations), stage.status,
+                       _largest_product(stage.trajectory) if converged else float("nan")))
+        if not converged:
+            break
+        task, result = raised, stage
+    weights, iterations, statuses, products = zip(*stages)
+    return ElasticSolution(task, result, weights, iterations, statuses, products)

@@ -5,6 +5,7 @@ import dataclasses
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jaxmm
 from jaxmm import analysis, tasks
@@ -76,6 +77,24 @@ def test_a_pushing_foot_in_the_air_is_caught():
     assert "no force on corners off the ground" in report.failed
     assert "constraint contact_points" in report.failed
     assert "constraint normal_complementarity" in report.failed
+
+
+def test_complementarity_measures_the_products_of_eq_20_and_21():
+    """Zero for a stance (its corners are where the kinematics put them, within 1e-6 m of the
+    ground); a lifted corner's f_z c_z, a pushing corner's sliding |f_z Δc_xy| and the largest
+    slack, each where it was put."""
+    _, trajectory = _standing_still()
+    knots = trajectory.knots
+    still = analysis.complementarity(trajectory)
+    assert still["normal"] < 1e-4 and still["planar"] == 0.0 and still["slack"] == 0.0
+    force = float(knots.contact_forces[3, 0, 2])
+    moved = dataclasses.replace(
+        knots, contact_points=knots.contact_points.at[3, 0, 2].set(0.05).at[2, 1, 0].add(-0.002),
+        tangential_slack=knots.tangential_slack.at[4, 2].set(3e-3))
+    measure = analysis.complementarity(Trajectory(moved, trajectory.total_time))
+    sliding = max(float(knots.contact_forces[1, 1, 2]), float(knots.contact_forces[2, 1, 2])) * 0.002
+    assert measure["normal"] == pytest.approx(0.05 * force, abs=still["normal"])
+    assert measure["planar"] == pytest.approx(sliding, rel=1e-9) and measure["slack"] == 3e-3
 
 
 def test_unbalanced_forces_fail_the_resimulation():

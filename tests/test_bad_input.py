@@ -270,6 +270,10 @@ SOLVE_CASES = {
                                            ValueError, "n must be a positive integer"),
     "sampler given an integer seed": (lambda: batch.sample_guesses(take_off(), 0, 4), TypeError,
                                       "key must be one JAX PRNG key"),
+    "elastic continuation that lowers the weight": (lambda: solve.solve_elastic(take_off(), factor=0.5), ValueError,
+                                                    "factor > 1"),
+    "elastic continuation to a zero tolerance": (lambda: solve.solve_elastic(take_off(), tolerance=0.0), ValueError,
+                                                 "tolerance > 0"),
 }
 
 

@@ -6,11 +6,12 @@ from jaxmm.analysis.validation import (
     ValidationReport,
     airborne_corners,
     check_trajectory,
+    complementarity,
     corner_groups,
     flight_knots,
     resimulate_com,
     validate,
 )
 
-__all__ = ["Check", "ValidationReport", "airborne_corners", "check_trajectory", "corner_groups", "flight_knots",
-           "resimulate_com", "validate"]
+__all__ = ["Check", "ValidationReport", "airborne_corners", "check_trajectory", "complementarity", "corner_groups",
+           "flight_knots", "resimulate_com", "validate"]

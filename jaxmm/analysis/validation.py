@@ -80,6 +80,20 @@ def airborne_corners(trajectory, contact_height=0.01):
     return np.asarray(trajectory.knots.contact_points[..., 2]) > contact_height
 
 
+def complementarity(trajectory):
+    """How far a trajectory is from exact contact complementarity (eq. 20, 21 with ε = 0):
+    {"normal": the largest f_z c_z [N m], "planar": the largest |f_z[k] (c_xy[k+1] − c_xy[k])|
+    [N m], "slack": the largest slack ε_n or ε_t [N m]}. All three are 0 for a trajectory whose
+    corners push only on the ground and never slide while they push."""
+    knots = trajectory.knots
+    force = np.asarray(knots.contact_forces[..., 2])
+    points = np.asarray(knots.contact_points)
+    sliding = np.abs(force[:-1, :, None] * (points[1:, :, :2] - points[:-1, :, :2]))
+    slack = np.concatenate([np.ravel(knots.normal_slack), np.ravel(knots.tangential_slack)])
+    return dict(normal=float(np.max(force * points[..., 2], initial=0.0)), planar=float(np.max(sliding, initial=0.0)),
+                slack=float(np.max(slack, initial=0.0)))
+
+
 def flight_knots(airborne):
     """The knots (a tuple of ints) at which every contact corner is off the ground, from the
     (N + 1, nc) mask of ``airborne_corners``."""
