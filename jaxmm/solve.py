@@ -158,11 +158,22 @@ def _largest_product(trajectory):
     return max(measure["normal"], measure["planar"])
 
 
-def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, factor=10.0, max_stages=4):
+def _raised(task, result, options, iterations):
+    """``task`` solved warm-started from ``result``, for at most ``iterations`` iterations (a
+    traced count: the compiled ``advance`` serves every cap)."""
+    guess, options, multipliers, bound_multipliers = programs.prepare(task, None, options, result)
+    state = programs.start(task, guess, options, multipliers, bound_multipliers)
+    options = ip.iteration_options(options)
+    return programs.finish(task, programs.advance(task, state, options, iterations), int(ip.Status.MAX_ITERATIONS))
+
+
+def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, factor=10.0, max_stages=4,
+                  stage_iterations=1500):
     """Solve ``task`` to exact contact complementarity: ``solve_task(task, guess, options)``,
     then, while a product f_z c_z or |f_z Δc_xy| (eq. 20, 21) is above ``tolerance`` [N m], the
     same task with its slack weight w_complementarity_slack × ``factor``, warm-started from the
-    last answer, up to ``max_stages`` raises. Returns an ``ElasticSolution``.
+    last answer, up to ``max_stages`` raises of at most ``stage_iterations`` iterations each.
+    Returns an ``ElasticSolution``.
 
     The published relaxation pays for the slacks ε ≥ f_z c_z, |f_z Δc| in the cost (eq. 32): an
     ℓ1 penalty, which is exact (Anitescu 2005, the elastic mode for MPCCs): once w exceeds the
@@ -171,13 +182,15 @@ def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, 
     compiled solve (weights are data). With the published slack weight, a task whose optimum
     buys force on a corner in the air (``validate`` fails) is moved to a physical one nearby.
 
-    A stage that does not converge ends the continuation: the result is then the last
-    converged stage (its status says so), and the failed stage is in ``statuses``. Raises
+    A stage that does not converge (``MAX_ITERATIONS`` past ``stage_iterations``) ends the
+    continuation: the result is then the last converged stage, whose product (above
+    ``tolerance``) precedes the failed stage's NaN in ``products``. Raises
     ValueError for a tolerance, factor or stage count out of range, TypeError as ``solve_task``.
     """
-    if not (tolerance > 0 and factor > 1 and isinstance(max_stages, int) and max_stages >= 0):
-        raise ValueError(f"need tolerance > 0, factor > 1 and an integer max_stages ≥ 0; got {tolerance!r}, "
-                         f"{factor!r}, {max_stages!r}")
+    counts = all(isinstance(n, int) for n in (max_stages, stage_iterations))
+    if not (tolerance > 0 and factor > 1 and counts and max_stages >= 0 and stage_iterations > 0):
+        raise ValueError(f"need tolerance > 0, factor > 1, an integer max_stages ≥ 0 and stage_iterations > 0; got "
+                         f"{tolerance!r}, {factor!r}, {max_stages!r}, {stage_iterations!r}")
     result = solve_task(task, guess, options)
     weight = float(task.weights.complementarity_slack)
     stages = [(weight, int(result.solution.iterations), result.status, _largest_product(result.trajectory))]
@@ -186,7 +199,7 @@ def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, 
         # The same leaf type as a scenario's weights (a float64 array): the stage reuses the compiled solve.
         weights = dataclasses.replace(task.weights, complementarity_slack=jnp.asarray(weight, dtype=float))
         raised = dataclasses.replace(task, weights=weights)
-        stage = solve_task(raised, options=options, warm_start=result)
+        stage = _raised(raised, result, options, min(stage_iterations, options.max_iterations))
         converged = stage.status == ip.Status.CONVERGED
         stages.append((weight, int(stage.solution.iterations), stage.status,
                        _largest_product(stage.trajectory) if converged else float("nan")))

@@ -22,7 +22,7 @@ LAYERS = {
     "solver": {"stagewise"},
     "analysis": {"rigid_body", "robots", "physics", "transcription", "tasks", "solver"},
     "programs": {"compilation", "stagewise", "transcription", "tasks", "solver"},
-    "solve": {"programs", "solver", "transcription"},
+    "solve": {"programs", "solver", "transcription", "analysis"},
     "batch": {"programs", "solve", "solver", "transcription", "tasks", "analysis"},
     "tuning": {"solve", "solver"},
     "io": {"rigid_body", "robots", "transcription", "solver", "programs"},

@@ -96,3 +96,14 @@ def test_the_elastic_continuation_is_physical_where_the_published_optimum_is_not
     assert float(answer.task.weights.complementarity_slack) == answer.weights[-1] > answer.weights[0]
     report = analysis.validate(answer.task, answer.result.trajectory)
     assert report.ok, str(report)
+
+
+def test_an_elastic_stage_that_does_not_converge_ends_the_continuation():
+    """A raise capped at 3 iterations cannot converge: the answer is the published stage's, with
+    the failed stage recorded and its product NaN."""
+    task = tasks.scenario("take_off", **UP)
+    answer = solve_elastic(task, tolerance=SIGMA, stage_iterations=3)
+    assert [s.name for s in answer.statuses] == ["CONVERGED", "MAX_ITERATIONS"] and answer.iterations[1] == 3
+    assert answer.products[0] > SIGMA and np.isnan(answer.products[1])
+    assert answer.status is ip.Status.CONVERGED and answer.task is task
+    assert answer.total_iterations == int(answer.result.solution.iterations) + 3
