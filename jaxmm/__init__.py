@@ -4,8 +4,9 @@ The public API in one screen: load a robot (``load_robot``, ``load_ironcub``), i
 quantities (``frame_poses``, ``com_position``, ``centroidal_momentum_matrix``, ...), a task
 (``scenario``, ``build_task``, ``initial_guess``), one way to solve it (``solve_task``; to exact
 contact complementarity, ``solve_elastic``), one to solve many (``solve_batch``), one to
-differentiate a found optimum (``gradient``), and its check against the physics (``validate``). The layers beneath are subpackages: ``rigid_body``,
-``robots``, ``physics``, ``stagewise``, ``transcription``, ``solver``, ``analysis``.
+differentiate a found optimum (``gradient``), and its check against the physics (``validate``).
+The layers beneath are subpackages: ``rigid_body``, ``robots``, ``physics``, ``stagewise``,
+``transcription``, ``solver``, ``analysis``.
 
 Importing jaxmm enables float64 in JAX: every quantity of the library is double precision.
 Conventions (q = (p, ρ xyzw, s), ν = (ṗ, ω world, ṡ)) are documented in ``jaxmm.rigid_body.model``.

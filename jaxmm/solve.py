@@ -90,7 +90,14 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_
     if differentiable is not False:
         return _differentiable(task, guess, options, warm_start, differentiable, time_budget, interruptible,
                                same_scaling)
+    return _iterate(task, guess, options, warm_start, same_scaling, time_budget, interruptible)
+
+
+def _iterate(task, guess, options, warm_start, same_scaling, time_budget, interruptible, iterations=None):
+    """``solve_task``'s solve, stopped with status ``MAX_ITERATIONS`` after ``iterations``
+    (default options.max_iterations; a traced count: the compiled ``advance`` serves every cap)."""
     guess, options, multipliers, bound_multipliers = programs.prepare(task, guess, options, warm_start)
+    iterations = options.max_iterations if iterations is None else min(iterations, options.max_iterations)
     stopping.check_budget(time_budget)
     scaling = None
     if same_scaling:
@@ -100,8 +107,7 @@ def solve_task(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, same_
     state = programs.start(task, guess, options, multipliers, bound_multipliers, scaling)
     options = ip.iteration_options(options)
     return programs.run(state, lambda s, until: programs.advance(task, s, options, until),
-                        lambda s, stopped: programs.finish(task, s, stopped), options.max_iterations, time_budget,
-                        interruptible)
+                        lambda s, stopped: programs.finish(task, s, stopped), iterations, time_budget, interruptible)
 
 
 def gradient(task, result, loss):
@@ -158,15 +164,6 @@ def _largest_product(trajectory):
     return max(measure["normal"], measure["planar"])
 
 
-def _raised(task, result, options, iterations):
-    """``task`` solved warm-started from ``result``, for at most ``iterations`` iterations (a
-    traced count: the compiled ``advance`` serves every cap)."""
-    guess, options, multipliers, bound_multipliers = programs.prepare(task, None, options, result)
-    state = programs.start(task, guess, options, multipliers, bound_multipliers)
-    options = ip.iteration_options(options)
-    return programs.finish(task, programs.advance(task, state, options, iterations), int(ip.Status.MAX_ITERATIONS))
-
-
 def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, factor=10.0, max_stages=4,
                   stage_iterations=1500):
     """Solve ``task`` to exact contact complementarity: ``solve_task(task, guess, options)``,
@@ -199,7 +196,7 @@ def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, 
         # The same leaf type as a scenario's weights (a float64 array): the stage reuses the compiled solve.
         weights = dataclasses.replace(task.weights, complementarity_slack=jnp.asarray(weight, dtype=float))
         raised = dataclasses.replace(task, weights=weights)
-        stage = _raised(raised, result, options, min(stage_iterations, options.max_iterations))
+        stage = _iterate(raised, None, options, result, False, None, False, stage_iterations)
         converged = stage.status == ip.Status.CONVERGED
         stages.append((weight, int(stage.solution.iterations), stage.status,
                        _largest_product(stage.trajectory) if converged else float("nan")))
