@@ -5,7 +5,9 @@ For each scenario (``tasks.scenario(name)`` on the default assembled iRonCub at 
 or --knots) and each revision, two fresh processes pinned to one core measure the iterations
 program every solve runs (``programs.advance``, options ``programs.DEFAULT_OPTIONS``):
 
-* cold, with an empty persistent compilation cache: the time to trace and lower the program
+* cold, with an empty persistent compilation cache: the first call of ``programs.start`` (the
+  state before the first iteration: tracing, compiling and running it), the time to trace and
+  lower the iterations program
   (``.trace(...).lower()``), XLA's compile time (``.compile()``), the size of the compiled
   program (``compilation.program_size``: HLO instructions in its optimised text, and kernels,
   the instructions outside fusion bodies that run as an operation of their own), the Cholesky
@@ -57,7 +59,9 @@ options = ip.iteration_options(started)  # what solve_task iterates with
 out = dict(knots=task.n_knots)
 
 if mode == "cold":
+    t0 = time.perf_counter()
     state = jax.block_until_ready(programs.start(task, guess, started, m, b))
+    out.update(start=time.perf_counter() - t0)
     t0 = time.perf_counter()
     lowered = programs.advance.trace(task, state, options, int(skip)).lower()
     t1 = time.perf_counter()
@@ -149,7 +153,8 @@ def main():
                 base = results[-1][1]
                 for label, r in results:
                     ratio = lambda key: f" ({r[key] / base[key]:.2f}×)" if len(results) > 1 else ""  # noqa: E731
-                    rows.append((name, r["knots"], label, format_time(r["trace_lower"]) + ratio("trace_lower"),
+                    rows.append((name, r["knots"], label, format_time(r["start"]) + ratio("start"),
+                                 format_time(r["trace_lower"]) + ratio("trace_lower"),
                                  format_time(r["compile"]) + ratio("compile"), f"{r['hlo'][0]:,}", f"{r['hlo'][1]:,}",
                                  f"{r['cholesky']} / {r['triangular']}",
                                  format_time(r["first_iteration"]) + ratio("first_iteration"),
@@ -160,7 +165,7 @@ def main():
     print("\n".join(machine_lines(["jax", "jaxlib"])))
     print(f"XLA_FLAGS: {os.environ.get('XLA_FLAGS', '(unset: XLA defaults)')}; one core per process; iterations "
           f"{args.skip}–{args.skip + args.iterations} for the time per iteration, median of {args.repeats}\n")
-    header = ("scenario", "N", "revision", "trace + lower", "XLA compile", "HLO instructions", "kernels",
+    header = ("scenario", "N", "revision", "start, first call", "trace + lower", "XLA compile", "HLO instructions", "kernels",
               "Cholesky / triangular solves", "cache hit → first iteration", "per iteration")
     print(render(header, rows))
     if len(sources) > 1:

@@ -9,6 +9,7 @@ import pytest
 
 import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import interior_point as ip
+from jaxmm.solver import scaling
 from jaxmm import stagewise
 from jaxmm.stagewise import StagewiseFunctions, StagewiseNLP
 
@@ -254,6 +255,32 @@ def test_slacks_start_at_the_rows_of_the_pushed_guess_and_every_slack_setting_re
     assert ip.Options().slack_start == "pushed"
     with pytest.raises(ValueError, match="slack_start"):
         ip.Options(slack_start="pushed inside")
+
+
+def test_the_first_pass_fixes_the_scaling_at_the_starting_point():
+    """Without a given scaling, ``start`` leaves the state in unit scaling (``PendingScaling``) and
+    ``advance``'s first pass computes IPOPT's gradient-based scaling from the derivatives at the
+    starting point (the guess pushed inside its bounds), with the start's own ``max_gradient``
+    and ``bound_push``, counting no iteration: the iterates are those of a start given that
+    scaling, even when ``advance`` runs with ``iteration_options``."""
+    nlp = integrator(CAPPED, u_max=0.5, energy_cap=1.0)
+    Z0 = jnp.zeros((K, 3)).at[:, 2].set(0.8)
+    options = dataclasses.replace(OPTIONS, max_gradient=0.5, bound_push=0.05)
+    state = ip.start(nlp, Z0, jnp.zeros(1), options)
+    assert bool(state.pending_scaling.pending) and float(state.scaling[0]) == 1.0
+    P = state.iterate.P
+    factors = scaling.scaling(stagewise.blocks(nlp, P[0], P[1]), options.max_gradient)
+    assert float(factors[0]) < 1.0 and min(float(jnp.min(f, initial=1.0)) for f in factors[1]) < 1.0  # it matters
+    given = ip.start(nlp, Z0, jnp.zeros(1), options, scaling=factors)
+    assert not bool(given.pending_scaling.pending)
+    iterating = ip.iteration_options(options)
+    ours, theirs = advance(nlp, state, iterating, 3), advance(nlp, given, iterating, 3)
+    assert int(ours.iterations) == 3 and not bool(ours.pending_scaling.pending)
+    for a, b in zip(jax.tree.leaves((ours.scaling, ours.iterate, ours.history[:3])),
+                    jax.tree.leaves((factors, theirs.iterate, theirs.history[:3]))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
+    unchanged = advance(nlp, state, iterating, 0)  # no pass at all: still pending, nothing counted
+    assert bool(unchanged.pending_scaling.pending) and int(unchanged.iterations) == 0
 
 
 # Per-knot Rosenbrock (1 − x)² + 100 (y − x²)², with a different box on x at each knot.

@@ -35,7 +35,7 @@ from jaxmm.solver.options import (EQUALITIES, GROUPS, HISTORY_COLUMNS, INEQUALIT
                                   SLACK_STARTS, SOC_STEPS, Options, Status, iteration_options)
 from jaxmm.solver.scaling import outside, scaled_problem, violation  # noqa: F401
 from jaxmm.solver.scaling import scaling as gradient_scaling
-from jaxmm.solver.state import Counters, Iterate, Multipliers, Solution, SoftStep, State  # noqa: F401
+from jaxmm.solver.state import Counters, Iterate, Multipliers, PendingScaling, Solution, SoftStep, State  # noqa: F401
 from jaxmm.solver.trees import dot, l1, max_abs, select, tmap
 
 
@@ -43,50 +43,67 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     """The solver's ``State`` before its first iteration from (Z0 (K, nz), θ0 (ng,)), pushed
     inside the bounds; the constraint multipliers warm-started with ``multipliers`` (a
     ``Multipliers``), the bound multipliers with ``bound_multipliers`` (both from a previous
-    ``Solution``); ``scaling``: a previous ``Solution.scaling`` to solve in (default: computed
-    at the starting point)."""
+    ``Solution``); ``scaling``: a previous ``Solution.scaling`` to solve in. Without one the state
+    is in unit scaling, and ``advance``'s first pass computes IPOPT's gradient-based scaling at the
+    starting point from the derivatives it evaluates there (``PendingScaling``), so that the
+    NLP's derivatives are compiled once, in the iteration."""
     dtype = Z0.dtype
-    factors = gradient_scaling(nlp, Z0, theta0, options) if scaling is None else (scaling[0], tuple(scaling[1]))
-    problem = scaled_problem(nlp, factors)
-    cost_scale, row_scale, b = problem.cost_scale, problem.row_scale, problem.bounds
-    if options.slack_start == "pushed":  # the rows at the point the solve starts from, as IPOPT's slacks
+    b = barrier.bounds(nlp, (1.0, 1.0))  # (Z, θ)'s bounds do not depend on the scaling
+    pushed = options.slack_start == "pushed"
+    if pushed:  # the rows at the point the solve starts from, as IPOPT's slacks
         Z0, theta0 = barrier.interior((Z0, theta0), b, options.bound_push)
     r0 = stagewise.residuals(nlp, Z0, theta0)
-    P0 = barrier.interior((Z0, theta0, r0.path_inequality * row_scale[2], r0.transition_inequality * row_scale[3]), b,
-                          options.bound_push)
-    if multipliers is None:
-        y0 = tuple(jnp.zeros_like(s) for s in row_scale)
-    else:
-        y0 = tuple(cost_scale * getattr(multipliers, g) / s for g, s in zip(GROUPS, row_scale))
+    rows0 = (r0.path_inequality, r0.transition_inequality)
+    if not pushed:
+        Z0, theta0 = barrier.interior((Z0, theta0), b, options.bound_push)
+        r0 = stagewise.residuals(nlp, Z0, theta0)
+    groups = tuple(getattr(r0, g) for g in GROUPS)
+    factors = ((jnp.ones((), dtype), tuple(jnp.ones_like(g) for g in groups)) if scaling is None
+               else (jnp.asarray(scaling[0], dtype), tuple(jnp.asarray(f, dtype) for f in scaling[1])))
+    y0 = tuple(jnp.zeros_like(g) for g in groups) if multipliers is None else tuple(
+        jnp.asarray(getattr(multipliers, g), dtype) for g in GROUPS)
+    P0 = (Z0, theta0) + tuple(jnp.zeros_like(r) for r in rows0)
     ones = tuple(jnp.ones_like(p) for p in P0)
     zl0, zu0 = (ones, ones) if bound_multipliers is None else bound_multipliers
-    zl0 = tmap(lambda o, m: jnp.where(m, o, 0.0), zl0, b.has_lower)
-    zu0 = tmap(lambda o, m: jnp.where(m, o, 0.0), zu0, b.has_upper)
-    if options.slack_start == "pushed":  # P0's primal is the pushed point itself (the push is idempotent)
-        residuals = r0
-        c0 = problem.constraints(P0, r0)
-    else:
-        _, c0, residuals = problem.evaluate(P0)
-    envelope = jnp.maximum(1.0, l1(c0))
-    v0, _ = violation(nlp, P0[0], P0[1], residuals)
-    zero = jnp.asarray(0)
+    v0, _ = violation(nlp, Z0, theta0, r0)
+    zero, real = jnp.asarray(0), lambda x: jnp.asarray(x, dtype)
     state = State(
-        iterate=Iterate(P0, y0, zl0, zu0), residuals=residuals, mu=jnp.asarray(options.barrier0, dtype),
-        regularisation=jnp.asarray(0.0, dtype), forced=jnp.asarray(0.0, dtype),
-        filter=filters.empty(1e4 * envelope),
+        iterate=Iterate(P0, y0, zl0, zu0), residuals=r0, mu=real(options.barrier0),
+        regularisation=real(0.0), forced=real(0.0), filter=filters.empty(real(1e4)),
         counters=Counters(soft_steps=zero, rejections=zero, short_steps=zero, short_violation=v0,
                           restoration_iterations=zero, barrier_updates=zero),
         iterations=zero, status=jnp.asarray(int(Status.RUNNING)), violation=v0,
-        stationarity=jnp.asarray(jnp.inf, dtype),
-        history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
-        scaling=factors, theta_max=1e4 * envelope, theta_min=1e-4 * envelope,
-        restoring=jnp.asarray(False), restoration_theta=jnp.asarray(0.0, dtype),
-        soft=SoftStep(jnp.asarray(False), jnp.asarray(0.0, dtype)),
+        stationarity=real(jnp.inf), history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
+        scaling=factors, theta_max=real(1e4), theta_min=real(1e-4), restoring=jnp.asarray(False),
+        restoration_theta=real(0.0), soft=SoftStep(jnp.asarray(False), real(0.0)),
+        pending_scaling=PendingScaling(jnp.asarray(scaling is None), rows0, real(options.bound_push),
+                                       real(options.max_gradient)),
     )
+    state = _in_scaling(nlp, state, factors, y0)
     state = dataclasses.replace(state, soft=SoftStep(state.soft.pending, state.soft.reference, state))
     # No weak types: a cold start (θ0 from Python floats) and a warm one must give the same avals,
     # so that one compiled ``advance`` serves both.
     return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.result_type(x)), state)
+
+
+def _in_scaling(nlp, state, factors, y):
+    """``state`` (at the starting point) in the scaling ``factors`` (cost factor, per-row
+    factors): the slacks at the rows of ``state.pending_scaling`` pushed inside their scaled
+    bounds (the primal (Z, θ) is inside already, and the push leaves it), the multipliers ``y``
+    (the NLP's units) scaled, the bound multipliers kept where there is a bound, and the filter's
+    envelope from the scaled residuals (IPOPT's θ_max = 10⁴ max(1, θ(x₀)), θ_min = 10⁻⁴ of it)."""
+    problem = scaled_problem(nlp, factors)
+    cost_scale, row_scale, b = problem.cost_scale, problem.row_scale, problem.bounds
+    it, start_rows = state.iterate, state.pending_scaling.rows
+    P = barrier.interior((it.P[0], it.P[1], start_rows[0] * row_scale[2], start_rows[1] * row_scale[3]), b,
+                         state.pending_scaling.bound_push)
+    y = tuple(cost_scale * v / s for v, s in zip(y, row_scale))
+    zl = tmap(lambda v, m: jnp.where(m, v, 0.0), it.zl, b.has_lower)
+    zu = tmap(lambda v, m: jnp.where(m, v, 0.0), it.zu, b.has_upper)
+    envelope = jnp.maximum(1.0, l1(problem.constraints(P, state.residuals)))
+    return dataclasses.replace(
+        state, iterate=Iterate(P, y, zl, zu), scaling=factors, filter=filters.empty(1e4 * envelope),
+        theta_max=1e4 * envelope, theta_min=1e-4 * envelope)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -286,11 +303,26 @@ def iteration(ctx, state, judge_only=False):
     refuse = state.soft.pending & ~(error <= 0.9999 * state.soft.reference)
     # Both outcomes are computed and one is selected: a conditional around the iteration would
     # take the blocks (megabytes) as operands, which XLA copies into its branch.
-    judge_only = jnp.asarray(judge_only)
+    judge_only, pending = jnp.asarray(judge_only), state.pending_scaling.pending
     kept = dataclasses.replace(state, soft=SoftStep(jnp.zeros_like(state.soft.pending), state.soft.reference,
                                                     state.soft.refused))
-    stepped = _newton_iteration(ctx, state, B, J, c, dl, du, o, ~refuse & ~judge_only)
-    return select(refuse, _refused(ctx, state, refuse), select(judge_only, kept, stepped))
+    stepped = _newton_iteration(ctx, state, B, J, c, dl, du, o, ~refuse & ~judge_only & ~pending)
+    after = select(refuse, _refused(ctx, state, refuse), select(judge_only | pending, kept, stepped))
+    return _scaling_pass(ctx, state, B, after)
+
+
+def _scaling_pass(ctx, state, B, after):
+    """``after`` (the iteration's new state), unless ``state``'s scaling is pending
+    (``PendingScaling``): then this pass only fixes it, IPOPT's gradient-based scaling from the
+    blocks B at the starting point, and counts no iteration (``after`` is ``state`` there). Only
+    the leaves the scaling changes are selected."""
+    pending = state.pending_scaling.pending
+    scaled = _in_scaling(ctx.problem.nlp, state, gradient_scaling(B, state.pending_scaling.max_gradient),
+                         state.iterate.y)
+    fields = ("iterate", "scaling", "filter", "theta_max", "theta_min")
+    chosen = select(pending, tuple(getattr(scaled, f) for f in fields), tuple(getattr(after, f) for f in fields))
+    return dataclasses.replace(after, **dict(zip(fields, chosen)), pending_scaling=dataclasses.replace(
+        after.pending_scaling, pending=jnp.zeros_like(pending)))
 
 
 def _report(ctx, when, k, row):
@@ -336,7 +368,7 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
     delta_w, chol, factored, work = newton.factor(
         blocks_at, diagonal_at, jnp.where(restoring, 0.0, state.forced),
         lambda delta: newton.next_regularisation(delta, state.regularisation, options.regularisation_decrease),
-        ~restoring, 1e40, ctx.K, ctx.coupled)
+        ~restoring & ~state.pending_scaling.pending, 1e40, ctx.K, ctx.coupled)  # one attempt in the scaling pass
     system = system_at(delta_w)
     limit = jnp.where(restoring, 1, 1 + REFINEMENT_STEPS)
 
@@ -367,7 +399,7 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
 
     soft_steps = jnp.where(reset, 0, state.counters.soft_steps)
     search = line_search.search(P, c, direction, problem.evaluate, judge, slope_of, l1, restoring,
-                                factored & ~crawling, options.line_search_steps,
+                                factored & ~crawling & ~state.pending_scaling.pending, options.line_search_steps,
                                 ~restoring & (soft_steps < options.max_soft_steps))
     step = Step(c=c, f_now=cs * state.residuals.cost, dl=dl, du=du, optimality=o, mu=mu, updates=updates,
                 mu_step=mu_step, filter=filter_now, soft_steps=soft_steps,
@@ -496,13 +528,13 @@ def advance(nlp, state, options=Options(), until=None):
     and Ctrl-C). A soft-restoration step pending at ``until`` is judged before returning (kept
     or undone, ``iteration``'s ``judge_only``), so that a stopped solve reports the iterate the
     whole solve has at that iteration."""
-    ctx = context(nlp, state, options)
     limit = options.max_iterations if until is None else jnp.minimum(until, options.max_iterations)
 
     def running(s):
         return (s.status == int(Status.RUNNING)) & ((s.iterations < limit) | s.soft.pending)
 
-    return jax.lax.while_loop(running, lambda s: iteration(ctx, s, s.iterations >= limit), state)
+    # The context is rebuilt from each state's scaling: the first pass may fix it (``PendingScaling``).
+    return jax.lax.while_loop(running, lambda s: iteration(context(nlp, s, options), s, s.iterations >= limit), state)
 
 
 def finish(nlp, state, stopped=Status.MAX_ITERATIONS):

@@ -40,13 +40,12 @@ def row_scale(r, max_gradient):
     return jnp.minimum(1.0, max_gradient / jnp.maximum(largest, 1e-300))
 
 
-def scaling(nlp, Z0, theta0, options):
-    """(cost factor, per-row factors of the four groups) at the starting point: IPOPT's
-    gradient-based scaling, no row or cost gradient above options.max_gradient."""
-    B0 = stagewise.blocks(nlp, Z0, theta0)
-    cost_scale = jnp.minimum(1.0, options.max_gradient / jnp.maximum(
-        jnp.maximum(jnp.max(jnp.abs(B0.cost_z)), jnp.max(jnp.abs(B0.cost_theta))), 1e-300))
-    return cost_scale, tuple(row_scale(rows.group_rows(B0, g), options.max_gradient) for g in GROUPS)
+def scaling(B, max_gradient):
+    """(cost factor, per-row factors of the four groups) from the ``stagewise.Blocks`` B at the
+    starting point: IPOPT's gradient-based scaling, no row or cost gradient above max_gradient."""
+    cost_scale = jnp.minimum(1.0, max_gradient / jnp.maximum(
+        jnp.maximum(jnp.max(jnp.abs(B.cost_z)), jnp.max(jnp.abs(B.cost_theta))), 1e-300))
+    return cost_scale, tuple(row_scale(rows.group_rows(B, g), max_gradient) for g in GROUPS)
 
 
 @dataclasses.dataclass(frozen=True)

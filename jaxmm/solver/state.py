@@ -103,6 +103,22 @@ class SoftStep:
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
+class PendingScaling:
+    """What the first pass of ``advance`` needs to fix the scaling of a state that ``start`` left
+    in unit scaling (no scaling given): IPOPT's gradient-based scaling comes from the NLP's
+    derivatives at the starting point, which that pass evaluates at the iteration's own call site.
+    pending: whether the scaling is still to be fixed; rows: the inequality rows where the
+    slacks start, in the NLP's units ((K, mg), (K − 1, mh)); bound_push, max_gradient: the
+    ``Options`` of ``start`` (data, so that one compiled ``advance`` serves every start)."""
+
+    pending: jax.Array
+    rows: tuple
+    bound_push: jax.Array
+    max_gradient: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
 class State:
     """The solver between two iterations (``start``, ``advance``, ``finish``).
 
@@ -114,7 +130,8 @@ class State:
     per-row factors of the four groups); theta_max: the filter's envelope on the infeasibility,
     theta_min: the infeasibility below which Armijo steps on the barrier function may be taken
     (both from the starting point); restoring: in the restoration phase; restoration_theta: the
-    infeasibility where it started; soft: the ``SoftStep`` whose test is still to be made."""
+    infeasibility where it started; soft: the ``SoftStep`` whose test is still to be made;
+    pending_scaling: the ``PendingScaling`` of a start without a given scaling."""
 
     iterate: Iterate
     residuals: object
@@ -134,3 +151,4 @@ class State:
     restoring: jax.Array
     restoration_theta: jax.Array
     soft: SoftStep
+    pending_scaling: PendingScaling
