@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmm.solver.options import KAPPA_SIGMA
-from jaxmm.solver.trees import tmap
+from jaxmm.solver.trees import flat, tmap
 
 
 @jax.tree_util.register_dataclass
@@ -45,10 +45,8 @@ def distances(P, b):
 def log_sum(P, b):
     """Σ ln(distance) over the finite bounds (the barrier is −μ times this)."""
     dl, du = distances(P, b)
-    return sum(
-        jnp.sum(jnp.where(ml, jnp.log(a), 0.0)) + jnp.sum(jnp.where(mu_, jnp.log(c), 0.0))
-        for a, c, ml, mu_ in zip(dl, du, b.has_lower, b.has_upper)
-    )
+    return jnp.sum(flat(tmap(lambda a, c, ml, mu_: jnp.where(ml, jnp.log(a), 0.0) + jnp.where(mu_, jnp.log(c), 0.0),
+                             dl, du, b.has_lower, b.has_upper)))
 
 
 def value(P, b, mu):
@@ -72,11 +70,8 @@ def interior(P, b, kappa=1e-2):
 
 def fraction_to_boundary(values, steps, tau):
     """Largest α ≤ 1 keeping every value (distance or multiplier) ≥ (1 − τ) of itself (eq. 15)."""
-    alpha = jnp.asarray(1.0)
-    for v, d in zip(values, steps):
-        ratio = jnp.where(d < 0, -tau * v / jnp.where(d < 0, d, -1.0), jnp.inf)
-        alpha = jnp.minimum(alpha, jnp.min(ratio, initial=jnp.inf))
-    return alpha
+    ratios = tmap(lambda v, d: jnp.where(d < 0, -tau * v / jnp.where(d < 0, d, -1.0), jnp.inf), values, steps)
+    return jnp.minimum(1.0, jnp.min(flat(ratios), initial=jnp.inf))
 
 
 def terms(dl, du, zl, zu, mu, b):

@@ -36,7 +36,7 @@ from jaxmm.solver.options import (EQUALITIES, GROUPS, HISTORY_COLUMNS, INEQUALIT
 from jaxmm.solver.scaling import outside, scaled_problem, violation  # noqa: F401
 from jaxmm.solver.scaling import scaling as gradient_scaling
 from jaxmm.solver.state import Counters, Iterate, Multipliers, PendingScaling, Solution, SoftStep, State  # noqa: F401
-from jaxmm.solver.trees import dot, l1, max_abs, select, tmap
+from jaxmm.solver.trees import all_finite, dot, l1, max_abs, select, tmap
 
 
 def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multipliers=None, scaling=None):
@@ -160,8 +160,8 @@ def optimality(ctx, state, B, J, c, dl, du):
     dual = tmap(lambda g, a, c_, f: jnp.where(f, g - a + c_, 0.0), grad, zl, zu, b.free)
     n_mult = sum(v.size for v in y) + sum(v.size for v in zl) + sum(v.size for v in zu)
     n_var = sum(p.size for p in it.P)
-    s_d = jnp.maximum(100.0, (sum(jnp.sum(jnp.abs(v)) for v in y + zl + zu)) / max(n_mult, 1)) / 100.0
-    s_c = jnp.maximum(100.0, (sum(jnp.sum(jnp.abs(v)) for v in zl + zu)) / max(2 * n_var, 1)) / 100.0
+    s_d = jnp.maximum(100.0, l1(y + zl + zu) / max(n_mult, 1)) / 100.0
+    s_c = jnp.maximum(100.0, l1(zl + zu) / max(2 * n_var, 1)) / 100.0
     dual_error = max_abs(dual) / s_d
     error0 = jnp.maximum(dual_error, max_abs(barrier.complementarity(dl, du, zl, zu, 0.0, b)) / s_c)
     return Optimality(grad, dual, dual_error, max_abs(c), s_c, error0)
@@ -414,23 +414,17 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
                                   soft=SoftStep(jnp.asarray(False), state.soft.reference))
     # A non-finite derivative or step stops the solve even where the line search rejected it.
     searched = factored & ~crawling
-    finite = _finite(new.iterate) & _finite(o.dual) & (~searched | _finite(search.newton.dP))
+    finite = all_finite((new.iterate, o.dual)) & (~searched | all_finite(search.newton.dP))
     new = dataclasses.replace(new, soft=SoftStep(soft & finite, _soft_reference(ctx, state, step), refused))
     new = select(finite, new, state)
     _report(ctx, report, k, new.history[k])  # the row the history keeps for this iteration
     return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)), iterations=k + 1)
 
 
-def _finite(tree):
-    """Whether every entry of every leaf is finite."""
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)]))
-
-
 def _primal_dual_error(dual, c, complementarity):
     """The barrier problem's primal–dual error, IPOPT's soft-restoration measure: mean |dual
     infeasibility| + mean |residual| + mean |distance · z − μ|."""
-    return sum(sum(jnp.sum(jnp.abs(v)) for v in tree) / max(sum(v.size for v in tree), 1)
-               for tree in (dual, c, complementarity))
+    return sum(l1(tree) / max(sum(v.size for v in tree), 1) for tree in (dual, c, complementarity))
 
 
 def _soft_error(ctx, it, dual, c, dl, du, mu):

@@ -39,7 +39,7 @@ def terms(state, c, b):
 
 def measure(c, log_sum, mu):
     """½‖c‖² + μ × barrier, from the barrier's Σ ln(distance)."""
-    return 0.5 * sum(jnp.sum(v * v) for v in c) - mu * log_sum
+    return 0.5 * dot(c, c) - mu * log_sum
 
 
 def slope(c, J, direction, active, bgrad):
