@@ -372,6 +372,19 @@ def test_row_supports_cover_every_nonzero_of_the_jacobians(integration):
                     assert np.any(block[:, run.start:run.stop] != 0.0), (group, run.start)
 
 
+@pytest.mark.parametrize("name", ["take_off", "jumping"])
+def test_the_knot_layout_puts_the_coupled_columns_last(name):
+    """The block factorisation eliminates each knot's variables with the columns that the
+    transition rows couple to the next knot last (``linalg.coupled_order``): in the layout of
+    ``variables.FIELDS`` that order is the identity, so no block is reordered."""
+    from jaxmm.solver import linalg, rows
+    nlp = transcription.stagewise_nlp(scenario(name, knots=3))
+    coupled = rows.coupled_columns(stagewise.row_supports(nlp))
+    order, s = linalg.coupled_order(nlp.knot_size, coupled)
+    assert 0 < s < nlp.knot_size
+    assert order == tuple(range(nlp.knot_size))
+
+
 def test_resample_interpolates_knots_in_time_and_keeps_unit_quaternions():
     task = scenario("take_off", knots=6, keep_horizon=True)
     guess = initial_guess(task)

@@ -1,6 +1,6 @@
 """Decision variables: one knot as a named pytree, the trajectory, flat layout and scaling.
 
-The order of the fields is the flat layout of a knot (docs/formulation.md, "Variables").
+The flat layout of a knot is the order of ``FIELDS`` (docs/formulation.md, "Variables").
 """
 
 import dataclasses
@@ -54,7 +54,16 @@ class Knot:
         )
 
 
-FIELDS = tuple(f.name for f in dataclasses.fields(Knot))
+# The flat layout of a knot: the fields that no transition row couples to the next knot first,
+# those it couples (the integrated states, the contact points and forces, the thrust chain, ε_t)
+# last. The block factorisation eliminates each knot's variables with the coupled ones last
+# (``solver.linalg.coupled_order``), so in this order it reorders nothing.
+FIELDS = (
+    "com_acceleration", "angular_momentum_rate", "base_linear_velocity", "base_angular_velocity",
+    "joint_velocities", "contact_force_rates", "throttle", "normal_slack",
+    "com", "com_velocity", "angular_momentum", "base_position", "base_quaternion", "joint_positions",
+    "contact_forces", "contact_points", "thrust", "thrust_rate", "thrust_acceleration", "tangential_slack",
+)
 
 
 @jax.tree_util.register_dataclass
