@@ -168,7 +168,7 @@ def test_bounds_match_jax(build, name, options):
         np.testing.assert_array_equal(np.asarray(ours[name][1]), upper, err_msg=name)
     lower, upper = (nlp.flatten(bound) for bound in constraints.variable_bounds(task))
     reference_lower, reference_upper = nlp.variable_bounds()
-    labels = [f"{field}[{i}]" for field, sl in task.layout.slices().items() for i in range(sl.stop - sl.start)]
+    labels = [f"{field}[{i}]" for field, sl in nlp.layout.slices().items() for i in range(sl.stop - sl.start)]
     labels = [f"knot {k} {label}" for k in range(task.n_knots) for label in labels] + ["total_time"]
     for ours, reference, side in ((lower, reference_lower, "lower"), (upper, reference_upper, "upper")):
         differ = [(labels[i], float(ours[i]), float(reference[i])) for i in np.flatnonzero(ours != reference)]

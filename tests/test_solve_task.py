@@ -125,7 +125,7 @@ def test_reduced_jumping_converges_and_passes_validate(jumping):
     assert report.flight_knots, str(report)  # it jumps
 
 
-# Expected failure, strict: measured 6.25424e5 (ours, CONVERGED) against 6.24501e5 (IPOPT, feasible to
+# Expected failure, strict: measured 6.2532e5–6.2542e5 (ours, CONVERGED) against 6.24501e5 (IPOPT, feasible to
 # 1e-8), a different local optimum of the relaxed complementarity; a strict mark turns red once ours
 # finds the lower one.
 @pytest.mark.xfail(strict=True, reason="from the published guess ours converges to a jump 1.5e-3 above the feasible "

@@ -25,7 +25,7 @@ import numpy as np
 from adam.casadi import KinDynComputations
 from adam.core.constants import Representations
 
-from jaxmm.transcription.variables import FIELDS, Trajectory
+from jaxmm.transcription.variables import Knot, Trajectory
 
 PATH_EQUALITIES = ("centroidal_dynamics", "com", "angular_momentum", "contact_points", "jet_dynamics")
 TRANSITION_EQUALITIES = (
@@ -213,7 +213,9 @@ class ReferenceNLP:
 
     def __init__(self, task, urdf_path):
         self.task = task
-        self.layout = task.layout
+        # IPOPT's variables in the knot's reading order, whatever the JAX solver's flat layout:
+        # IPOPT's path (its linear solver's pivoting) depends on the order of the variables.
+        self.layout = dataclasses.replace(task.layout, fields=tuple(f.name for f in dataclasses.fields(Knot)))
         self.n_intervals = task.n_intervals
         self.n_variables = task.n_knots * self.layout.size + 1
         self._numbers = _Numbers.of(task)
@@ -493,7 +495,7 @@ class ReferenceNLP:
         (the boundary conditions, eq. 30, 31).
         """
         N, P = self.n_intervals, self._numbers.params
-        lower, upper = _knot_boxes(self.task, P)
+        lower, upper = _knot_boxes(self.layout, self.task.n_knots, P)
         slices = self.layout.slices()
 
         def box(k, field, lo, up, index=slice(None)):
@@ -595,9 +597,8 @@ class ReferenceNLP:
         return trajectory, info
 
 
-def _knot_boxes(task, P):
-    """Every-knot boxes of docs/formulation.md: (lower, upper), each (N + 1, nz)."""
-    layout = task.layout
+def _knot_boxes(layout, n_knots, P):
+    """Every-knot boxes of docs/formulation.md in ``layout``: (lower, upper), each (N + 1, nz)."""
     fields = {name: (np.full(shape, -np.inf), np.full(shape, np.inf)) for name, shape in layout.shapes().items()}
     xy = float(P["com_xy_limit"])
     fields["com"] = (np.array([-xy, -xy, 0.0]), np.array([xy, xy, np.inf]))
@@ -617,9 +618,9 @@ def _knot_boxes(task, P):
     fields["throttle"] = (np.full(layout.n_jets, low), np.full(layout.n_jets, high))
     for name in ("normal_slack", "tangential_slack"):
         fields[name] = (np.zeros(nc), np.full(nc, float(P["slack_limit"])))
-    lower = np.concatenate([np.ravel(fields[name][0]) for name in FIELDS])
-    upper = np.concatenate([np.ravel(fields[name][1]) for name in FIELDS])
-    return np.tile(lower, (task.n_knots, 1)), np.tile(upper, (task.n_knots, 1))
+    lower = np.concatenate([np.ravel(fields[name][0]) for name in layout.fields])
+    upper = np.concatenate([np.ravel(fields[name][1]) for name in layout.fields])
+    return np.tile(lower, (n_knots, 1)), np.tile(upper, (n_knots, 1))
 
 
 def solve_ipopt(task, urdf_path, guess=None, *, tol=1e-4, max_iter=3000, print_level=0, scaled=True,

@@ -115,12 +115,14 @@ def resample(trajectory, n_knots):
 class Layout:
     """Static sizes of a knot and the map between ``Knot`` and flat vectors.
 
-    n_joints n, n_contacts nc, n_jets nj (all Python ints, hashable).
+    n_joints n, n_contacts nc, n_jets nj (all Python ints, hashable); fields: the order of the
+    fields in the flat vector (default ``FIELDS``).
     """
 
     n_joints: int
     n_contacts: int
     n_jets: int
+    fields: tuple = FIELDS
 
     def shapes(self):
         n, nc, nj = self.n_joints, self.n_contacts, self.n_jets
@@ -132,7 +134,7 @@ class Layout:
             contact_points=(nc, 3), thrust=(nj,), thrust_rate=(nj,), thrust_acceleration=(nj,),
             throttle=(nj,), normal_slack=(nc,), tangential_slack=(nc,),
         )
-        return {name: sizes[name] for name in FIELDS}
+        return {name: sizes[name] for name in self.fields}
 
     @property
     def size(self):
@@ -152,7 +154,7 @@ class Layout:
         """Knot → (nz,) (or (..., nz) for batched knots)."""
         shapes = self.shapes()
         leaves = []
-        for name in FIELDS:
+        for name in self.fields:
             leaf = jnp.asarray(getattr(knot, name))
             batch = leaf.shape[: leaf.ndim - len(shapes[name])]
             leaves.append(leaf.reshape(batch + (-1,)))
