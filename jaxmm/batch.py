@@ -177,9 +177,6 @@ def _check_guesses(guesses, expected, size=None):
 
 # ------------------------------------------------------------------------------------- solve
 
-_published_guess = jax.jit(initial_guess)
-
-
 @jax.jit
 def published_guesses(tasks):
     """The published initial guess (``tasks.initial_guess``) of every task of a batched ``Task``:
@@ -317,7 +314,7 @@ def sample_guesses(task, key, n, *, around=None, joint_scale=0.1, horizon_scale=
             raise ValueError(f"{name} must be finite and non-negative, got {value!r}")
     if not 0 <= horizon_scale <= 1:
         raise ValueError(f"horizon_scale must be in [0, 1], got {horizon_scale!r}")
-    base = _published_guess(task) if around is None else around
+    base = initial_guess(task) if around is None else around
     if not isinstance(base, Trajectory):
         raise TypeError(f"around must be a Trajectory, got {type(base).__name__}")
     _check_shapes(base, jax.eval_shape(initial_guess, task), (), "around")

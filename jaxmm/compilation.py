@@ -19,6 +19,7 @@ this store skips.
 """
 
 import collections
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -27,6 +28,7 @@ import os
 import pathlib
 import pickle
 import re
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -152,14 +154,34 @@ def _compile_afresh(lowered):
     """``lowered.compile()`` with JAX's persistent cache off: an executable loaded from that
     cache serialises without its kernels (XLA's CPU backend) and fails when run after being
     loaded from the store; the store keeps these programs instead."""
-    enabled = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)
-    compilation_cache.reset_cache()  # JAX decides once whether its cache is used
-    try:
+    with _persistent_cache_off():
         return lowered.compile()
+
+
+# Compiles in flight in ``_persistent_cache_off`` (threads may compile several programs at once,
+# ``programs.compiled_programs``), and JAX's setting before the first of them.
+_CACHE_OFF = {"count": 0, "enabled": None}
+_CACHE_OFF_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _persistent_cache_off():
+    """JAX's persistent cache off from the first compile that asks for it until the last one
+    ends, whatever the threads doing them (JAX's setting is global)."""
+    with _CACHE_OFF_LOCK:
+        if _CACHE_OFF["count"] == 0:
+            _CACHE_OFF["enabled"] = jax.config.jax_enable_compilation_cache
+            jax.config.update("jax_enable_compilation_cache", False)
+            compilation_cache.reset_cache()  # JAX decides once whether its cache is used
+        _CACHE_OFF["count"] += 1
+    try:
+        yield
     finally:
-        jax.config.update("jax_enable_compilation_cache", enabled)
-        compilation_cache.reset_cache()
+        with _CACHE_OFF_LOCK:
+            _CACHE_OFF["count"] -= 1
+            if _CACHE_OFF["count"] == 0:
+                jax.config.update("jax_enable_compilation_cache", _CACHE_OFF["enabled"])
+                compilation_cache.reset_cache()
 
 
 def jit(fn=None, **kwargs):

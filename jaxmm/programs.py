@@ -13,11 +13,13 @@ time budget or its interrupts. ``solve_program`` is the whole solve as one trace
 solve at a found optimum (``solver.sensitivity``).
 """
 
+import concurrent.futures
 import dataclasses
 import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxmm import compilation, stagewise
 from jaxmm.solver import interior_point as ip
@@ -109,7 +111,8 @@ def check_guess(task, guess, label="guess"):
         dtype = jnp.result_type(leaf)
         if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
             raise TypeError(f"{where} has dtype {dtype}; a real (float) array is needed")
-        if not isinstance(leaf, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(leaf))):
+        # NumPy: a jnp check of each leaf would compile one program per operation and shape.
+        if not isinstance(leaf, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(leaf))):
             raise ValueError(f"{where} has non-finite entries (NaN or inf)")
 
 
@@ -155,11 +158,8 @@ def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *,
     solve includes no compiling)."""
     guess, options, multipliers, bound_multipliers = prepare(task, guess, options, warm_start)
     stopping.check_budget(time_budget)
-    started = start.compiled(task, guess, options, multipliers, bound_multipliers)
-    state = started.out_info
+    started, advanced, finished = compiled_programs(task, guess, options, multipliers, bound_multipliers)
     iterating = ip.iteration_options(options)
-    advanced = advance.compiled(task, state, iterating, iterating.max_iterations)
-    finished = finish.compiled(task, state, int(ip.Status.MAX_ITERATIONS))
 
     def solve(other=None):
         if other is not None:
@@ -169,6 +169,21 @@ def compile_solve(task, guess=None, options=DEFAULT_OPTIONS, warm_start=None, *,
                    lambda s, stopped: finished(task, s, stopped), iterating.max_iterations, time_budget, interruptible)
 
     return solve
+
+
+def compiled_programs(task, guess, options, multipliers, bound_multipliers, scaling=None):
+    """(start, advance, finish) compiled for these arguments (``compilation.Program``s; advance
+    takes ``ip.iteration_options(options)``), loaded where a cache has them. ``start`` and
+    ``finish`` compile in a second thread while this one traces and lowers ``advance``: XLA
+    compiles without holding Python's lock, so their compiles hide behind the tracing."""
+    state = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype),
+                         start.eval_shape(task, guess, options, multipliers, bound_multipliers, scaling))
+    iterating = ip.iteration_options(options)
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        started = pool.submit(start.compiled, task, guess, options, multipliers, bound_multipliers, scaling)
+        finished = pool.submit(finish.compiled, task, state, int(ip.Status.MAX_ITERATIONS))
+        advanced = advance.compiled(task, state, iterating, iterating.max_iterations)
+        return started.result(), advanced, finished.result()
 
 
 @compilation.jit(static_argnames=("options", "settings"))

@@ -104,10 +104,12 @@ def _iterate(task, guess, options, warm_start, same_scaling, time_budget, interr
         if warm_start is None:
             raise ValueError("same_scaling=True needs a warm_start (whose scaling to keep)")
         scaling = warm_start.solution.scaling
-    state = programs.start(task, guess, options, multipliers, bound_multipliers, scaling)
+    started, advanced, finished = programs.compiled_programs(task, guess, options, multipliers, bound_multipliers,
+                                                             scaling)
+    state = started(task, guess, options, multipliers, bound_multipliers, scaling)
     options = ip.iteration_options(options)
-    return programs.run(state, lambda s, until: programs.advance(task, s, options, until),
-                        lambda s, stopped: programs.finish(task, s, stopped), iterations, time_budget, interruptible)
+    return programs.run(state, lambda s, until: advanced(task, s, options, until),
+                        lambda s, stopped: finished(task, s, stopped), iterations, time_budget, interruptible)
 
 
 def gradient(task, result, loss):

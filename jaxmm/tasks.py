@@ -3,6 +3,7 @@ published initial guess."""
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -286,8 +287,11 @@ def _planner_joint_limits(robot, description):
     return np.array([planner.get(j, urdf[i]) for i, j in enumerate(robot.model.joint_names)])
 
 
+@jax.jit
 def initial_guess(task):
-    """The published initial guess (docs/formulation.md): a ``Trajectory``.
+    """The published initial guess (docs/formulation.md): a ``Trajectory``. Compiled as one
+    program: built op by op, its forward kinematics would compile every operation on its own
+    (seconds before a first solve).
 
     CoM and contact-point xy interpolated linearly from x_0 to x_N; contact points start at
     the reference pose's corners; thrust 30 N; base pose and joints at the reference
