@@ -44,6 +44,12 @@ horizons (``tasks.with_intervals``) from its published guess, then the scenario 
 answer resampled to its knots; IPOPT still starts from the published guess. The iterations
 column then reads "coarse + fine"; compile and solve times count both levels.
 
+--elastic solves each scenario by ``jaxmm.solve_elastic``: the published NLP, then its slack weight
+raised ×10 per stage, warm-started, until every complementarity product is ≤ 1e-6 N m; the
+iterations column lists the stages, the objective is the published cost (eq. 32) of the answer,
+and ``validate`` checks it against the task of its last stage. Every table reports the largest
+product f_z c_z or |f_z Δc_xy| (``analysis.complementarity``) of each answer, IPOPT's included.
+
 --ipopt-slacks solves with ``Options(ipopt_slacks=True)`` (δ_w regularises the slacks too, as
 IPOPT's δ_s = δ_w), in every scenario or, given a comma-separated list, in those only; the rows
 it applies to are marked. --slack-start guess starts the slacks at the rows' values at the guess
@@ -54,7 +60,7 @@ IPOPT's ``max_iter``, for quick runs.
 
 Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
        [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M] [--coarse NC]
-       [--ipopt-slacks [take_off,...]] [--slack-start pushed|guess]
+       [--ipopt-slacks [take_off,...]] [--slack-start pushed|guess] [--elastic]
 """
 
 import os
@@ -107,13 +113,18 @@ def measure(task, trajectory):
     return stagewise.residuals(nlp, Z, theta).cost, ip.violation(nlp, Z, theta)[0]
 
 
-def solve_ours(task, guess, options, repeats, coarse=None):
-    """(compile seconds, median solve seconds, TaskSolution, coarse TaskSolution or None) of the
-    compiled solve; with ``coarse`` (a number of intervals), coarse to fine: the task on that
-    many intervals (``tasks.with_intervals``) solved from its own published guess, its answer
-    resampled (``variables.resample``) as the guess of the task's solve; compile time: both
-    compilations; solve time: both solves and the resampling."""
-    if coarse is None:
+def solve_ours(task, guess, options, repeats, coarse=None, elastic=False):
+    """(compile seconds, median solve seconds, result, coarse TaskSolution or None) of the
+    compiled solve; result: a TaskSolution, or with ``elastic`` the ``ElasticSolution`` of
+    ``solve_elastic`` (its stages share the compiled solve); with ``coarse`` (a number of
+    intervals), coarse to fine: the task on that many intervals (``tasks.with_intervals``) solved
+    from its own published guess, its answer resampled (``variables.resample``) as the guess of
+    the task's solve; compile time: both compilations; solve time: both solves and the
+    resampling."""
+    if elastic:
+        _, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
+        run = lambda: (jax.block_until_ready(solve.solve_elastic(task, guess, options)), None)  # noqa: E731
+    elif coarse is None:
         compiled, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
         run = lambda: (jax.block_until_ready(compiled()), None)  # noqa: E731
     else:
@@ -139,28 +150,35 @@ def verdict(report):
     return "ok" if report.ok else f"FAILED ({len(report.failed)})"
 
 
-def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack_penalty, coarse, save=None):
+def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack_penalty, coarse, save=None,
+                 elastic=False):
     """Everything printed about one scenario, as a dict; IPOPT too if urdf_path is given; our
     solution written to the directory ``save`` (``jaxmm.io.save``: trajectory, multipliers, the
-    per-iteration history) if given."""
+    per-iteration history) if given; ours by ``solve_elastic`` with ``elastic``."""
     task = tasks.scenario(name, knots=knots, slack_penalty=slack_penalty)
     guess = tasks.initial_guess(task)
     label = name if slack_penalty == "linear" else f"{name} ({slack_penalty} slacks)"
     label = label if coarse is None else f"{label}, from N = {coarse}"
     label = f"{label}, ipopt_slacks" if options.ipopt_slacks else label
     label = label if options.slack_start == ip.Options.slack_start else f"{label}, slacks from the {options.slack_start}"
+    label = f"{label}, solve_elastic" if elastic else label
     row = dict(name=label, N=task.n_intervals, sizes=sizes(task, guess))
     log(f"{name} N = {task.n_intervals}: compiling our solve...")
-    compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse)
+    compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse, elastic)
     log(f"{name}: solved in {format_time(solve_time)} (median of {repeats}); validating...")
-    objective, violation = (float(v) for v in measure(task, result.trajectory))
+    if elastic:  # the stages' iterations; the answer is validated against its stage's task
+        inner, (solved_task, result) = " + ".join(map(str, result.iterations)), (result.task, result.result)
+    else:
+        solved_task = task
+        inner = str(int(result.solution.iterations)) if rough is None else \
+            f"{int(rough.solution.iterations)} + {int(result.solution.iterations)}"
+    objective, violation = (float(v) for v in measure(task, result.trajectory))  # the published cost (eq. 32)
     row["ours"] = dict(
         compile=compile_time, solve=solve_time, objective=objective, violation=violation,
-        outer=int(result.solution.barrier_updates), inner=str(int(result.solution.iterations)) if rough is None
-        else f"{int(rough.solution.iterations)} + {int(result.solution.iterations)}",
+        outer=int(result.solution.barrier_updates), inner=inner, product=largest_product(result.trajectory),
         solves=per_iteration(result.solution, "linear_solves"),
         factorisations=per_iteration(result.solution, "factorisations"), status=result.status.message,
-        report=analysis.validate(task, result.trajectory),
+        report=analysis.validate(solved_task, result.trajectory),
     )  # fmt: skip
     if save is not None:
         path = pathlib.Path(save) / f"{name}_N{task.n_intervals}.npz"
@@ -173,9 +191,16 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
         max_iter = {} if ipopt_max_iter is None else dict(max_iter=ipopt_max_iter)
         trajectory, info = solve_ipopt(task, urdf_path, guess, tol=IPOPT_TOLERANCE, print_level=0, **max_iter)
         objective, violation = (float(v) for v in measure(task, trajectory))
-        row["ipopt"] = dict(info, objective_jax=objective, violation_jax=violation, report=analysis.validate(task, trajectory))
+        row["ipopt"] = dict(info, objective_jax=objective, violation_jax=violation, product=largest_product(trajectory),
+                            report=analysis.validate(task, trajectory))
         log(f"{name}: IPOPT {info['status']} in {format_time(info['wall_time'])}")
     return row
+
+
+def largest_product(trajectory):
+    """The largest complementarity product f_z c_z or |f_z Δc_xy| [N m] (``analysis.complementarity``)."""
+    measure = analysis.complementarity(trajectory)
+    return max(measure["normal"], measure["planar"])
 
 
 def per_iteration(solution, column):
@@ -188,12 +213,13 @@ def per_iteration(solution, column):
 
 def scenario_table(rows):
     header = ("scenario", "N", "variables", "equalities", "inequalities", "μ updates", "iterations", "solves / it.",
-              "factorisations / it.", "compile", "solve", "objective", "max violation", "status", "validate")  # fmt: skip
+              "factorisations / it.", "compile", "solve", "objective", "max violation", "largest product", "status",
+              "validate")  # fmt: skip
     lines = [
         (r["name"], r["N"], *r["sizes"], r["ours"]["outer"], r["ours"]["inner"], f"{r['ours']['solves']:.1f}",
          f"{r['ours']['factorisations']:.2f}",
          format_time(r["ours"]["compile"]), format_time(r["ours"]["solve"]), f"{r['ours']['objective']:.6g}",
-         f"{r['ours']['violation']:.2e}", r["ours"]["status"], verdict(r["ours"]["report"]))
+         f"{r['ours']['violation']:.2e}", f"{r['ours']['product']:.1e}", r["ours"]["status"], verdict(r["ours"]["report"]))
         for r in rows
     ]  # fmt: skip
     return render(header, lines)
@@ -201,7 +227,7 @@ def scenario_table(rows):
 
 def ipopt_table(rows):
     header = ("scenario", "N", "IPOPT build", "IPOPT setup", "IPOPT solve", "IPOPT it.", "objective", "max violation",
-              "IPOPT status", "validate", "ours compile", "ours solve", "ours objective", "ours violation",
+              "largest product", "IPOPT status", "validate", "ours compile", "ours solve", "ours objective", "ours violation",
               "speed-up solve", "speed-up incl. compile", "speed-up end to end")  # fmt: skip
     lines = []
     for r in rows:
@@ -211,7 +237,7 @@ def ipopt_table(rows):
         lines.append((
             r["name"], r["N"], format_time(ipopt["build_time"]), format_time(ipopt["setup_time"]),
             format_time(ipopt["wall_time"]), ipopt["iterations"], f"{ipopt['objective_jax']:.6g}",
-            f"{ipopt['violation_jax']:.2e}", ipopt["status"], verdict(ipopt["report"]),
+            f"{ipopt['violation_jax']:.2e}", f"{ipopt['product']:.1e}", ipopt["status"], verdict(ipopt["report"]),
             format_time(ours["compile"]), format_time(ours["solve"]), f"{ours['objective']:.6g}",
             f"{ours['violation']:.2e}", f"{ipopt['wall_time'] / ours['solve']:.3g}×",
             f"{ipopt['wall_time'] / ours_total:.3g}×", f"{ipopt_total / ours_total:.3g}×",
@@ -281,10 +307,15 @@ def main():
                              "(default, IPOPT's) or of the guess itself")
     parser.add_argument("--coarse", type=int, default=None,
                         help="solve each scenario from the solution of its version on this many intervals (same horizons)")
+    parser.add_argument("--elastic", action="store_true",
+                        help="solve by jaxmm.solve_elastic (the published NLP, then its slack weight raised to "
+                             "exact complementarity); iterations per stage")
     parser.add_argument("--save", default=None, metavar="DIR",
                         help="write each of our solutions to DIR/<scenario>_N<N>.npz (jaxmm.io.save; with its "
                              "per-iteration history)")
     args = parser.parse_args()
+    if args.elastic and args.coarse is not None:
+        parser.error("--elastic and --coarse cannot be combined")
     if args.save is not None:
         pathlib.Path(args.save).mkdir(parents=True, exist_ok=True)
 
@@ -309,7 +340,7 @@ def main():
                 rows.append(run_scenario(
                     name, args.knots_override, dataclasses.replace(options, ipopt_slacks=name in slack_names), args.repeats,
                     urdf.name if args.ipopt else None, args.max_iterations,
-                    args.slack_penalty, args.coarse, args.save,
+                    args.slack_penalty, args.coarse, args.save, args.elastic,
                 ))
     knot_table = None
     if args.knots is not None:
