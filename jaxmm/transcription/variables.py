@@ -165,8 +165,10 @@ class Layout:
         if z.shape[-1] != self.size:
             raise ValueError(f"a flat knot has {self.size} entries, got shape {z.shape}")
         batch = z.shape[:-1]
+        # lax.slice_in_dim, not z[..., sl]: NumPy-style indexing costs far more Python per call
+        # when the solver's derivatives are traced (dozens of knots unflattened per iteration).
         return Knot(**{
-            name: z[..., sl].reshape(batch + shape)
+            name: jax.lax.slice_in_dim(z, sl.start, sl.stop, axis=-1).reshape(batch + shape)
             for (name, shape), sl in zip(self.shapes().items(), self.slices().values())
         })
 
@@ -176,12 +178,8 @@ class Layout:
 
     def scale(self):
         """(nz,) variable scaling d of the published runs: z = d · z̃ (T 100; f, ḟ 50; s 2; ṡ 7)."""
-        knot = self.full(1.0)
-        return self.flatten(dataclasses.replace(
-            knot,
-            thrust=knot.thrust * 100.0,
-            contact_forces=knot.contact_forces * 50.0,
-            contact_force_rates=knot.contact_force_rates * 50.0,
-            joint_positions=knot.joint_positions * 2.0,
-            joint_velocities=knot.joint_velocities * 7.0,
-        ))
+        d, slices = np.ones(self.size), self.slices()  # NumPy: a constant, not traced operations
+        for name, factor in (("thrust", 100.0), ("contact_forces", 50.0), ("contact_force_rates", 50.0),
+                             ("joint_positions", 2.0), ("joint_velocities", 7.0)):
+            d[slices[name]] = factor
+        return d
