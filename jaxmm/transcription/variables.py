@@ -172,10 +172,6 @@ class Layout:
             for (name, shape), sl in zip(self.shapes().items(), self.slices().values())
         })
 
-    def full(self, value):
-        """A Knot with every entry equal to value (useful for bounds)."""
-        return self.unflatten(jnp.full(self.size, value, dtype=float))
-
     def scale(self):
         """(nz,) variable scaling d of the published runs: z = d · z̃ (T 100; f, ḟ 50; s 2; ṡ 7)."""
         d, slices = np.ones(self.size), self.slices()  # NumPy: a constant, not traced operations
