@@ -62,6 +62,41 @@ def canonical_name(name):
     return key
 
 
+def _target(com, label, com_xy_limit):
+    """A CoM target (3,) [m], checked to lie in the workspace: |x|, |y| ≤ com_xy_limit, z ≥ 0."""
+    com = _vector(com, 3, label)
+    if np.any(np.abs(com[:2]) > com_xy_limit) or com[2] < 0:
+        raise ValueError(f"{label} {com.tolist()} is outside the workspace bounds (|x|, |y| ≤ {com_xy_limit} m, z ≥ 0)")
+    return com
+
+
+def _check_numbers(positive, non_negative, slack_limit, mid_com_height):
+    """Raise ValueError naming the first of ``build_task``'s numbers out of its range: the
+    ``positive`` {name: value} finite and > 0, the ``non_negative`` finite and ≥ 0, slack_limit
+    ≥ 0 (inf allowed), mid_com_height finite or None."""
+    for label, value in positive.items():
+        if not (np.ndim(value) == 0 and np.isfinite(value) and value > 0):
+            raise ValueError(f"{label} must be a finite positive number, got {value!r}")
+    for label, value in non_negative.items():
+        if not (np.ndim(value) == 0 and np.isfinite(value) and value >= 0):
+            raise ValueError(f"{label} must be a finite non-negative number, got {value!r}")
+    if not (np.ndim(slack_limit) == 0 and slack_limit >= 0):
+        raise ValueError(f"slack_limit must be a non-negative number (inf: unbounded), got {slack_limit!r}")
+    if mid_com_height is not None and not np.isfinite(mid_com_height):
+        raise ValueError(f"mid_com_height must be finite (or None: no mid-horizon target), got {mid_com_height!r}")
+
+
+def _jet_data(robot, jet_coefficients, max_thrust):
+    """(jet_coefficients (nj, 10), max_thrust (nj,) [N]) checked for ``robot``'s nj jets: both
+    required when it has jets, empty when it has none."""
+    nj = len(robot.jet_frames)
+    if not nj:
+        return np.zeros((0, 10)), np.zeros(0)
+    if jet_coefficients is None or max_thrust is None:
+        raise ValueError(f"robot {robot.name!r} has {nj} jets: jet_coefficients (nj, 10) and max_thrust (nj,) are required")
+    return _array(jet_coefficients, (nj, 10), "jet_coefficients"), _array(max_thrust, (nj,), "max_thrust")
+
+
 def build_task(
     robot,
     initial_com,
@@ -111,40 +146,19 @@ def build_task(
         raise ValueError(f"integration must be one of {INTEGRATION_RULES}, got {integration!r}")
     if slack_penalty not in SLACK_PENALTIES:
         raise ValueError(f"slack_penalty must be one of {SLACK_PENALTIES}, got {slack_penalty!r}")
-    initial_com, final_com = (_vector(v, 3, label) for v, label in ((initial_com, "initial_com"), (final_com, "final_com")))
-    for label, com in (("initial_com", initial_com), ("final_com", final_com)):
-        if np.any(np.abs(com[:2]) > com_xy_limit) or com[2] < 0:
-            raise ValueError(
-                f"{label} {com.tolist()} is outside the workspace bounds (|x|, |y| ≤ {com_xy_limit} m, z ≥ 0)"
-            )
+    initial_com, final_com = (_target(v, label, com_xy_limit) for v, label in ((initial_com, "initial_com"),
+                                                                             (final_com, "final_com")))
     if not (min_dt > 0 and np.isfinite(max_dt) and max_dt >= min_dt):
         raise ValueError(f"time-step bounds must satisfy 0 < min_dt ≤ max_dt < ∞, got {min_dt}, {max_dt}")
-    for label, value in (("friction_coefficient", friction_coefficient), ("jet_com_bound", jet_com_bound),
-                         ("joint_velocity_limit", joint_velocity_limit),
-                         ("base_linear_velocity_limit", base_linear_velocity_limit),
-                         ("base_angular_velocity_limit", base_angular_velocity_limit),
-                         ("com_xy_limit", com_xy_limit)):
-        if not (np.ndim(value) == 0 and np.isfinite(value) and value > 0):
-            raise ValueError(f"{label} must be a finite positive number, got {value!r}")
-    for label, value in (("boundary_tolerance", boundary_tolerance),
-                         ("final_orientation_tolerance", final_orientation_tolerance),
-                         ("complementarity_tolerance", complementarity_tolerance)):
-        if not (np.ndim(value) == 0 and np.isfinite(value) and value >= 0):
-            raise ValueError(f"{label} must be a finite non-negative number, got {value!r}")
-    if not (np.ndim(slack_limit) == 0 and slack_limit >= 0):
-        raise ValueError(f"slack_limit must be a non-negative number (inf: unbounded), got {slack_limit!r}")
-    if mid_com_height is not None and not np.isfinite(mid_com_height):
-        raise ValueError(f"mid_com_height must be finite (or None: no mid-horizon target), got {mid_com_height!r}")
+    _check_numbers(dict(friction_coefficient=friction_coefficient, jet_com_bound=jet_com_bound,
+                        joint_velocity_limit=joint_velocity_limit, base_linear_velocity_limit=base_linear_velocity_limit,
+                        base_angular_velocity_limit=base_angular_velocity_limit, com_xy_limit=com_xy_limit),
+                   dict(boundary_tolerance=boundary_tolerance, final_orientation_tolerance=final_orientation_tolerance,
+                        complementarity_tolerance=complementarity_tolerance), slack_limit, mid_com_height)
     throttle = _vector(throttle_range, 2, "throttle_range")
     if not throttle[0] <= throttle[1]:
         raise ValueError(f"throttle_range must be (lower, upper) with lower ≤ upper, got {throttle.tolist()}")
-    if nj:
-        if jet_coefficients is None or max_thrust is None:
-            raise ValueError(f"robot {robot.name!r} has {nj} jets: jet_coefficients (nj, 10) and max_thrust (nj,) are required")
-        jet_coefficients = _array(jet_coefficients, (nj, 10), "jet_coefficients")
-        max_thrust = _array(max_thrust, (nj,), "max_thrust")
-    else:
-        jet_coefficients, max_thrust = np.zeros((0, 10)), np.zeros(0)
+    jet_coefficients, max_thrust = _jet_data(robot, jet_coefficients, max_thrust)
     if joint_limits is None:
         joint_limits = np.asarray(model.position_limits)
     joint_limits = _array(joint_limits, (model.n_joints, 2), "joint_limits")

@@ -106,6 +106,100 @@ def _validate_structure(robot, check_inertia):
     return roots[0]
 
 
+def _chosen_joints(robot, joints, locked):
+    """The optimised joints' names (default: every moving joint not in ``locked``, in URDF
+    order), checked: each listed once, moving, known, and not also locked."""
+    moving_names = [j.name for j in robot.joints if j.type in _MOVING]
+    joint_types = {j.name: j.type for j in robot.joints}
+    if joints is None:
+        joints = [j for j in moving_names if j not in locked]
+    joints = list(joints)
+    if len(set(joints)) != len(joints):
+        raise ValueError(f"joints are listed more than once: {sorted({j for j in joints if joints.count(j) > 1})}")
+    for j in joints:
+        if j in joint_types and joint_types[j] == "fixed":
+            raise ValueError(f"joint {j!r} is fixed and cannot be optimised")
+        lookup(moving_names, j, "joint")
+    for j in locked:
+        lookup(moving_names, j, "joint")
+        if j in joints:
+            raise ValueError(f"joint {j!r} is both optimised and locked")
+    return joints
+
+
+def _walk_bodies(robot, root):
+    """Breadth-first walk over bodies (each body's fixed-joint links first), so bodies are
+    numbered by depth and each depth level is a contiguous range of indices. Returns a dict of
+    lists: bodies (names, parents, depths), moving joints (names, prismatic, 4×4 placements in
+    the parent body, unit axes, (lower, upper, velocity) limits), frames (one per link: name,
+    body, 4×4 placement in it) and link_body {link: (body, 4×4 placement)}."""
+    children = collections.defaultdict(list)
+    for joint in robot.joints:
+        children[joint.parent].append(joint)
+    tree = dict(body_names=[root], body_parent=[-1], body_depth=[0], joint_names=[], joint_prismatic=[], joint_T=[],
+                joint_axis=[], joint_limits=[], frame_names=[], frame_body=[], frame_T=[], link_body={})
+    bodies = collections.deque([0])
+    while bodies:
+        body = bodies.popleft()
+        links = [(tree["body_names"][body], np.eye(4))]
+        while links:
+            link, T_link = links.pop()
+            tree["link_body"][link] = (body, T_link)
+            tree["frame_names"].append(link)
+            tree["frame_body"].append(body)
+            tree["frame_T"].append(T_link)
+            for joint in children[link]:
+                T_joint = T_link @ _transform(joint.origin)
+                if joint.type == "fixed":
+                    links.append((joint.child, T_joint))
+                    continue
+                bodies.append(len(tree["body_names"]))
+                _add_joint(tree, joint, body, T_joint)
+    return tree
+
+
+def _add_joint(tree, joint, parent, T_joint):
+    """Append a moving URDF ``joint`` and its child body (on ``parent``) to ``tree``."""
+    axis = np.asarray(joint.axis if joint.axis is not None else [1.0, 0.0, 0.0], float)
+    if not np.linalg.norm(axis) > 0:
+        raise URDFError(f"joint {joint.name!r} has a zero axis")
+    tree["body_names"].append(joint.child)
+    tree["body_parent"].append(parent)
+    tree["body_depth"].append(tree["body_depth"][parent] + 1)
+    tree["joint_names"].append(joint.name)
+    tree["joint_prismatic"].append(joint.type == "prismatic")
+    tree["joint_T"].append(T_joint)
+    tree["joint_axis"].append(axis / np.linalg.norm(axis))
+    limit = joint.limit
+    lower = -np.inf if joint.type == "continuous" or limit is None or limit.lower is None else limit.lower
+    upper = np.inf if joint.type == "continuous" or limit is None or limit.upper is None else limit.upper
+    velocity = np.inf if limit is None or limit.velocity is None else limit.velocity
+    tree["joint_limits"].append((lower, upper, velocity))
+
+
+def _inertials(robot, link_body):
+    """The links' inertials in their bodies: (names, bodies, masses [kg], CoMs (3,) [m],
+    rotational inertias (3, 3) about the CoM [kg m²]); links without mass are left out (a
+    massless link with a rotational inertia keeps it, as in Pinocchio)."""
+    names, bodies, masses, coms, inertias = [], [], [], [], []
+    for link in robot.links:
+        inertial = link.inertial
+        if inertial is None or inertial.mass is None:
+            continue
+        if inertial.mass == 0 and (inertial.inertia is None or not np.any(inertial.inertia)):
+            continue
+        body, T_link = link_body[link.name]
+        T = T_link @ _transform(inertial.origin)
+        R = T[:3, :3]
+        inertia = np.asarray(inertial.inertia if inertial.inertia is not None else np.zeros((3, 3)), float)
+        names.append(link.name)
+        bodies.append(body)
+        masses.append(float(inertial.mass))
+        coms.append(T[:3, 3])
+        inertias.append(R @ (0.5 * (inertia + inertia.T)) @ R.T)
+    return names, bodies, masses, coms, inertias
+
+
 def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=True):
     """Build a floating-base ``Model`` from a URDF.
 
@@ -121,81 +215,13 @@ def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=T
     robot = urdf.robot
     root = _validate_structure(robot, check_inertia)
     locked = dict(locked or {})
-
-    children = collections.defaultdict(list)
-    for joint in robot.joints:
-        children[joint.parent].append(joint)
-    moving_names = [j.name for j in robot.joints if j.type in _MOVING]
-    joint_types = {j.name: j.type for j in robot.joints}
-
-    if joints is None:
-        joints = [j for j in moving_names if j not in locked]
-    joints = list(joints)
-    if len(set(joints)) != len(joints):
-        raise ValueError(f"joints are listed more than once: {sorted({j for j in joints if joints.count(j) > 1})}")
-    for j in joints:
-        if j in joint_types and joint_types[j] == "fixed":
-            raise ValueError(f"joint {j!r} is fixed and cannot be optimised")
-        lookup(moving_names, j, "joint")
-    for j in locked:
-        lookup(moving_names, j, "joint")
-        if j in joints:
-            raise ValueError(f"joint {j!r} is both optimised and locked")
-
-    # Breadth-first walk over bodies (each body's fixed-joint links first), so bodies are
-    # numbered by depth and each depth level is a contiguous range of indices.
-    body_names, body_parent, body_depth = [root], [-1], [0]
-    joint_names, joint_prismatic, joint_T, joint_axis, joint_limits = [], [], [], [], []
-    frame_names, frame_body, frame_T = [], [], []
-    link_body = {}
-    bodies = collections.deque([0])
-    while bodies:
-        body = bodies.popleft()
-        links = [(body_names[body], np.eye(4))]
-        while links:
-            link, T_link = links.pop()
-            link_body[link] = (body, T_link)
-            frame_names.append(link)
-            frame_body.append(body)
-            frame_T.append(T_link)
-            for joint in children[link]:
-                T_joint = T_link @ _transform(joint.origin)
-                if joint.type == "fixed":
-                    links.append((joint.child, T_joint))
-                    continue
-                axis = np.asarray(joint.axis if joint.axis is not None else [1.0, 0.0, 0.0], float)
-                if not np.linalg.norm(axis) > 0:
-                    raise URDFError(f"joint {joint.name!r} has a zero axis")
-                bodies.append(len(body_names))
-                body_names.append(joint.child)
-                body_parent.append(body)
-                body_depth.append(body_depth[body] + 1)
-                joint_names.append(joint.name)
-                joint_prismatic.append(joint.type == "prismatic")
-                joint_T.append(T_joint)
-                joint_axis.append(axis / np.linalg.norm(axis))
-                limit = joint.limit
-                lower = -np.inf if joint.type == "continuous" or limit is None or limit.lower is None else limit.lower
-                upper = np.inf if joint.type == "continuous" or limit is None or limit.upper is None else limit.upper
-                velocity = np.inf if limit is None or limit.velocity is None else limit.velocity
-                joint_limits.append((lower, upper, velocity))
-
-    inertial_names, inertial_body, masses, coms, inertias = [], [], [], [], []
-    for link in robot.links:
-        inertial = link.inertial
-        if inertial is None or inertial.mass is None:
-            continue
-        if inertial.mass == 0 and (inertial.inertia is None or not np.any(inertial.inertia)):
-            continue  # nothing to carry; a massless link with a rotational inertia keeps it, as in Pinocchio
-        body, T_link = link_body[link.name]
-        T = T_link @ _transform(inertial.origin)
-        R = T[:3, :3]
-        inertia = np.asarray(inertial.inertia if inertial.inertia is not None else np.zeros((3, 3)), float)
-        inertial_names.append(link.name)
-        inertial_body.append(body)
-        masses.append(float(inertial.mass))
-        coms.append(T[:3, 3])
-        inertias.append(R @ (0.5 * (inertia + inertia.T)) @ R.T)
+    joints = _chosen_joints(robot, joints, locked)
+    tree = _walk_bodies(robot, root)
+    body_names, body_parent, body_depth = tree["body_names"], tree["body_parent"], tree["body_depth"]
+    joint_names, joint_prismatic, joint_T = tree["joint_names"], tree["joint_prismatic"], tree["joint_T"]
+    joint_axis, joint_limits = tree["joint_axis"], tree["joint_limits"]
+    frame_names, frame_body, frame_T = tree["frame_names"], tree["frame_body"], tree["frame_T"]
+    inertial_names, inertial_body, masses, coms, inertias = _inertials(robot, tree["link_body"])
 
     optimised = tuple(joint_names.index(j) for j in joints)
     locked_idx = tuple(i for i, j in enumerate(joint_names) if i not in optimised)
