@@ -10,7 +10,8 @@ program every solve runs (``programs.advance``, options ``programs.DEFAULT_OPTIO
   lower the iterations program
   (``.trace(...).lower()``), XLA's compile time (``.compile()``), the size of the compiled
   program (``compilation.program_size``: HLO instructions in its optimised text, and kernels,
-  the instructions outside fusion bodies that run as an operation of their own), the Cholesky
+  the instructions outside fusion bodies that run as an operation of their own; a second table
+  gives the kernels per source file, ``compilation.kernel_sources``), the Cholesky
   factorisations and triangular solves (LAPACK custom calls) in the lowered program with every
   call inlined (``compilation.custom_calls``), and the time per iteration (median of
   --repeats runs of iterations --skip to --skip + --iterations from the published guess);
@@ -113,8 +114,9 @@ def measure(source, label, name, args):
         log(f"{label} {name}: cache hit")
         warm = probe(source, "warm", name, args, cache, texts)
         calls = compilation.custom_calls(pathlib.Path(texts, "lowered.txt").read_text())
-        size = compilation.program_size(pathlib.Path(texts, "compiled.txt").read_text())
-    return dict(cold, **warm, hlo=size, cholesky=calls.get("lapack_dpotrf_ffi", 0),
+        compiled = pathlib.Path(texts, "compiled.txt").read_text()
+        size, sources = compilation.program_size(compiled), compilation.kernel_sources(compiled)
+    return dict(cold, **warm, hlo=size, sources=sources, cholesky=calls.get("lapack_dpotrf_ffi", 0),
                 triangular=calls.get("lapack_dtrsm_ffi", 0))
 
 
@@ -147,9 +149,10 @@ def main():
                            capture_output=True)
             sources.append((revision(args.compare), other))
         try:
-            rows = []
+            rows, by_source = [], []
             for name in names:
                 results = [(label, measure(source, label, name, args)) for label, source in sources]
+                by_source.append((name, results))
                 base = results[-1][1]
                 for label, r in results:
                     ratio = lambda key: f" ({r[key] / base[key]:.2f}×)" if len(results) > 1 else ""  # noqa: E731
@@ -170,6 +173,11 @@ def main():
     print(render(header, rows))
     if len(sources) > 1:
         print(f"\nRatios: {sources[0][0]} / {sources[1][0]}.")
+    for name, results in by_source:
+        print(f"\n{name}: kernels by the source file of their innermost line (compilation.kernel_sources)\n")
+        files = sorted({f for _, r in results for f in r["sources"]}, key=lambda f: -results[0][1]["sources"].get(f, 0))
+        print(render(("source",) + tuple(label for label, _ in results),
+                     [(f,) + tuple(f"{r['sources'].get(f, 0):,}" for _, r in results) for f in files]))
 
 
 if __name__ == "__main__":

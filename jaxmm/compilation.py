@@ -361,12 +361,10 @@ def custom_calls(lowered_text):
 _TRIVIAL = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast"}
 
 
-def program_size(compiled_text):
-    """(HLO instructions, kernels) of a compiled program's optimised HLO text
-    (``….compile().as_text()``): every instruction, and those outside fusion bodies that run
-    as an operation of their own (fusions, custom calls, dots, copies, loops and their
-    parts; parameters, constants, tuples and bitcasts left out)."""
-    instructions = kernels = 0
+def _instructions(compiled_text):
+    """(instruction line, runs as a kernel of its own) for every instruction of an optimised HLO
+    text: kernels are those outside fusion bodies, parameters, constants, tuples and bitcasts
+    left out."""
     fused = False
     for line in compiled_text.splitlines():
         header = re.match(r"\s*(?:ENTRY )?%?([\w.\-]+) .*\{\s*$", line)
@@ -375,6 +373,50 @@ def program_size(compiled_text):
             continue
         op = re.match(r"\s*(?:ROOT )?%?[\w.\-]+ = (?:\([^=]*?\)|\S+) ([\w\-]+)\(", line)
         if op:
-            instructions += 1
-            kernels += (not fused) and op.group(1) not in _TRIVIAL
+            yield line, (not fused) and op.group(1) not in _TRIVIAL
+
+
+def program_size(compiled_text):
+    """(HLO instructions, kernels) of a compiled program's optimised HLO text
+    (``….compile().as_text()``): every instruction, and those outside fusion bodies that run
+    as an operation of their own (fusions, custom calls, dots, copies, loops and their
+    parts; parameters, constants, tuples and bitcasts left out)."""
+    instructions = kernels = 0
+    for _, kernel in _instructions(compiled_text):
+        instructions += 1
+        kernels += kernel
     return instructions, kernels
+
+
+def _source_files(compiled_text):
+    """{stack frame id: the source file of its innermost location} from an HLO text's
+    ``FileNames``, ``FileLocations`` and ``StackFrames`` tables."""
+    tables, section = {"FileNames": {}, "FileLocations": {}, "StackFrames": {}}, None
+    for line in compiled_text.splitlines():
+        if line in tables:
+            section = line
+        elif section and not line.strip():
+            section = None
+        elif section:
+            key, value = line.split(" ", 1)
+            tables[section][int(key)] = value
+    files = {k: v.strip('"') for k, v in tables["FileNames"].items()}
+    location_file = {k: int(re.search(r"file_name_id=(\d+)", v).group(1)) for k, v in tables["FileLocations"].items()}
+    return {k: files[location_file[int(re.search(r"file_location_id=(\d+)", v).group(1))]]
+            for k, v in tables["StackFrames"].items()}
+
+
+def kernel_sources(compiled_text):
+    """{source module: kernels} of a compiled program's optimised HLO text: each kernel
+    (``program_size``'s) under the file of the innermost source line in its metadata, named from
+    the package directory on (``jaxmm/solver/trees.py``; another file by its base name), or
+    ``"(no source)"`` (loop plumbing, copies and layout changes XLA adds)."""
+    frames = _source_files(compiled_text)
+    counts = collections.Counter()
+    for line, kernel in _instructions(compiled_text):
+        if kernel:
+            frame = re.search(r"stack_frame_id=(\d+)", line)
+            path = frames.get(int(frame.group(1))) if frame else None
+            counts["(no source)" if path is None else
+                   "jaxmm/" + path.rsplit("/jaxmm/", 1)[1] if "/jaxmm/" in path else os.path.basename(path)] += 1
+    return dict(counts)

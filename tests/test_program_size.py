@@ -14,6 +14,7 @@ import pytest
 
 import jaxmm  # noqa: F401  (float64)
 from jaxmm import compilation
+from jaxmm.rigid_body import so3
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import linalg
 from test_solver import CAPPED, K, integrator
@@ -62,3 +63,12 @@ def test_the_program_size_counts_instructions_and_kernels():
     bigger = compilation.program_size(jax.jit(lambda x: jnp.linalg.cholesky(jnp.sin(x) @ x.T + 3 * jnp.eye(3)))
                                       .lower(jnp.eye(3)).compile().as_text())
     assert bigger[0] > instructions and np.isfinite(bigger[1])
+
+
+def test_the_kernels_are_attributed_to_their_source_files():
+    """Every kernel is counted once, under the module whose line made it: a jitted quaternion
+    exponential's kernels come from ``jaxmm/rigid_body/so3.py``."""
+    text = jax.jit(jax.vmap(so3.quaternion_exp)).lower(jnp.ones((4, 3))).compile().as_text()
+    sources = compilation.kernel_sources(text)
+    assert sum(sources.values()) == compilation.program_size(text)[1]
+    assert sources.get("jaxmm/rigid_body/so3.py", 0) >= 1
