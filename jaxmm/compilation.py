@@ -417,6 +417,12 @@ def kernel_sources(compiled_text):
         if kernel:
             frame = re.search(r"stack_frame_id=(\d+)", line)
             path = frames.get(int(frame.group(1))) if frame else None
-            counts["(no source)" if path is None else
-                   "jaxmm/" + path.rsplit("/jaxmm/", 1)[1] if "/jaxmm/" in path else os.path.basename(path)] += 1
+            counts[_module_name(path)] += 1
     return dict(counts)
+
+
+def _module_name(path):
+    """``jaxmm/…`` for a file of the package, the base name for another, "(no source)" for None."""
+    if path is None:
+        return "(no source)"
+    return "jaxmm/" + path.rsplit("/jaxmm/", 1)[1] if "/jaxmm/" in path else os.path.basename(path)
