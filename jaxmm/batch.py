@@ -1,27 +1,19 @@
-"""Batched solves: many initial guesses (multi-start) or many tasks of one structure in a single
-jit-compiled ``jax.vmap`` of the solve, perturbed initial guesses, and a summary that ranks the
-answers and groups them by contact schedule.
+"""Batched solves: many initial guesses (multi-start) or many tasks of one structure, run by the
+strategy that pays on the backend (``jaxmm.schedule``: one compiled solve after another on a
+CPU, refilled vmapped slots on an accelerator, or split over the devices of a mesh); perturbed
+initial guesses; and a summary that ranks the answers and groups them by contact schedule.
 
-The interior-point solve is one ``lax.while_loop``; under ``vmap`` it keeps iterating while any
-instance runs and an instance that has stopped keeps its final state (JAX selects the old carry
-for it), so the answers are those of separate solves, up to rounding: batched and unbatched XLA
+Under ``vmap`` the solver's loops run while any slot needs them, and batched and unbatched XLA
 kernels round differently (1e-16 at the first iteration), which a nonconvex solve can amplify
 over hundreds of iterations into a few iterations more or less and a different point within the
-solver's tolerance. The batch costs as many iterations as its slowest instance, each as dear as
-one iteration of every instance, stopped ones included; and the solver's inner loops (inertia
-correction, line search) run, under ``vmap``, as long as any instance needs them: an instance
-that stopped on a NaN (its factorisation fails up to δ_w = 1e40) or on rejected steps (the line
-search runs to its limit) makes every later iteration of the batch dearer. With
-``vectorised=False`` the instances run one after another in a ``lax.map`` instead: on a CPU,
-whose batched kernels are loops anyway, that costs the sum of the instances' own iterations,
-not B times the slowest one's.
+solver's tolerance: a vmapped instance's answer is its single solve's up to that rounding.
 
 A batch is any pytree with a leading batch axis on every leaf: guesses are a ``Trajectory`` of
 leaves (B, N + 1, ...) and total time (B,); tasks a ``Task`` whose array leaves (targets,
 weights, bounds, the model's numbers) are (B, ...), with its static structure (robot topology,
 knot count, options) shared; the answer a ``TaskSolution`` with every leaf (B, ...). A
-multi-start batch broadcasts its task, so multi-start and multi-task batches of one size share
-one compilation.
+multi-start batch broadcasts its task, so multi-start and multi-task batches share one
+compilation.
 """
 
 import dataclasses
@@ -31,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm import analysis, programs
+from jaxmm import analysis, programs, schedule
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import stopping
 from jaxmm.tasks import initial_guess
@@ -194,47 +186,91 @@ def batch_mesh(devices=None):
     return jax.sharding.Mesh(np.asarray(devices), ("batch",))
 
 
-def default_vectorised(vectorised, mesh):
-    """The default of ``vectorised``: True, but on a mesh of CPU devices. Several CPU devices of
-    one process share one thread pool, and XLA's batched LAPACK kernels (Cholesky) wait in it
-    for work they queue to it: with every pool thread running a device's program they wait
-    forever (seen on 2 simulated CPU devices: the sharded robot batch hung with 2 instances per
-    device, never with 1). Unbatched kernels queue nothing."""
-    if vectorised is not None:
-        return bool(vectorised)
-    return mesh is None or mesh.devices.flat[0].platform != "cpu"
+def _vectorised_on(mesh):
+    """Whether each device of ``mesh`` vmaps its instances: not on CPU devices. Several CPU
+    devices of one process share one thread pool, and XLA's batched LAPACK kernels (Cholesky)
+    wait in it for work they queue to it: with every pool thread running a device's program they
+    wait forever (seen on 2 simulated CPU devices: the sharded robot batch hung with 2 instances
+    per device, never with 1). Unbatched kernels queue nothing."""
+    return mesh.devices.flat[0].platform != "cpu"
 
 
-def _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible):
-    """The compiled batch solve, its instances split over ``mesh``'s devices when given, or run
-    in slices (``stopping``) for a time budget or Ctrl-C."""
+@dataclasses.dataclass(frozen=True)
+class BatchProgress:
+    """Where a batch stands, passed to ``solve_batch``'s ``progress`` as each instance ends:
+    ``index`` and ``status`` of the instance that just ended; counts of instances ``finished``,
+    ``running`` and ``queued``; ``best`` objective among the converged ones (NaN before the
+    first); ``schedules``, how many distinct contact schedules the converged ones show."""
+
+    index: int
+    status: ip.Status
+    finished: int
+    running: int
+    queued: int
+    best: float
+    schedules: int
+
+    def __str__(self):
+        best = "none converged" if np.isnan(self.best) else f"best objective {self.best:.6g}"
+        return (f"{self.finished} finished, {self.running} running, {self.queued} queued; {best}; "
+                f"{self.schedules} contact schedule{'s' if self.schedules != 1 else ''}")
+
+
+class _Tally:
+    """``on_finish`` for ``schedule``: counts the ended instances and calls ``progress``."""
+
+    def __init__(self, size, parallel, progress):
+        self.size, self.parallel, self.progress = size, parallel, progress
+        self.finished, self.best, self.schedules = 0, np.nan, set()
+
+    def __call__(self, index, result):
+        self.finished += 1
+        status = result.status
+        if status == ip.Status.CONVERGED:
+            objective = float(result.solution.objective)
+            self.best = objective if np.isnan(self.best) else min(self.best, objective)
+            self.schedules.add(analysis.airborne_corners(result.trajectory).tobytes())
+        if self.progress is not None:
+            running = min(self.parallel, self.size - self.finished)
+            self.progress(BatchProgress(index, status, self.finished, running, self.size - self.finished - running,
+                                        self.best, len(self.schedules)))
+
+
+DEFAULT_SLOTS = 64
+
+
+def _run(tasks, guesses, options, mesh, strategy, slots, progress, time_budget, interruptible):
+    """The batch solve: split over ``mesh``'s devices when given, else by ``strategy``
+    (``schedule``)."""
     stopping.check_budget(time_budget)
-    if mesh is not None and (not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",)):
-        raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
-    vectorised = default_vectorised(vectorised, mesh)
+    size = batch_size(guesses)
     if mesh is not None:
-        if time_budget is not None or interruptible:
-            raise ValueError("a sharded batch is one call: it takes no time_budget and cannot be interrupted")
-        size, devices = batch_size(guesses), mesh.devices.size
-        if size % devices:
-            raise ValueError(f"a batch of {size} does not split evenly over {devices} devices: give a multiple of "
-                             f"{devices} instances (repeat a guess to pad)")
+        if not isinstance(mesh, jax.sharding.Mesh) or mesh.axis_names != ("batch",):
+            raise TypeError(f"mesh must be a one-axis Mesh named 'batch' (see batch_mesh), got {mesh!r}")
+        if time_budget is not None or interruptible or strategy is not None or progress is not None:
+            raise ValueError("a sharded batch is one call: it takes no strategy, progress, time_budget or interrupt")
+        if size % mesh.devices.size:
+            raise ValueError(f"a batch of {size} does not split evenly over {mesh.devices.size} devices: give a "
+                             f"multiple of {mesh.devices.size} instances (repeat a guess to pad)")
         split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
         return programs.sharded_batch_solve(jax.device_put(tasks, split), jax.device_put(guesses, split), options, mesh,
-                                            vectorised)
-    if time_budget is None and not interruptible:
-        return programs.batch_solve(tasks, guesses, options, vectorised)
-    return stopping.run(
-        programs.batch_start(tasks, guesses, options, vectorised),
-        lambda states, until: programs.batch_advance(tasks, states, options, vectorised, until),
-        lambda states, stopped: programs.batch_finish(tasks, states, vectorised, stopped),
-        options.max_iterations, time_budget=time_budget, interruptible=interruptible)
+                                            _vectorised_on(mesh))
+    strategy = schedule.default_strategy(strategy)
+    slots = DEFAULT_SLOTS if slots is None else slots
+    if isinstance(slots, bool) or not isinstance(slots, (int, np.integer)) or slots < 1:
+        raise ValueError(f"slots must be a positive integer, got {slots!r}")
+    if strategy == "queue":
+        results = schedule.run_queue(tasks, guesses, options, _Tally(size, 1, progress), time_budget, interruptible)
+    else:
+        tally = _Tally(size, min(slots, size), progress)
+        results = schedule.run_slots(tasks, guesses, options, slots, tally, time_budget, interruptible)
+    return jax.tree.map(_stack_leaves, *results)
 
 
-def solve_batch(tasks, guesses=None, options=programs.DEFAULT_OPTIONS, mesh=None, vectorised=None, *,
-                time_budget=None, interruptible=False):
-    """Solve many instances at once: one task from B initial guesses (multi-start), or B tasks
-    of one structure, instance i of ``tasks`` from guess i.
+def solve_batch(tasks, guesses=None, options=programs.DEFAULT_OPTIONS, mesh=None, strategy=None, *, slots=None,
+                progress=None, time_budget=None, interruptible=False):
+    """Solve many instances: one task from B initial guesses (multi-start), or B tasks of one
+    structure, instance i of ``tasks`` from guess i. No instance's answer depends on the others.
 
     tasks: one ``Task`` (broadcast to the batch: multi-start), a batched ``Task``
     (``stack_tasks``) or a list of B ``Task``s (stacked here), whose targets, heights, weights and
@@ -242,17 +278,22 @@ def solve_batch(tasks, guesses=None, options=programs.DEFAULT_OPTIONS, mesh=None
     (B,)), e.g. from ``sample_guesses``, or a list of B ``Trajectory``s; default, for batched
     tasks, the published initial guess of each. options: ``ip.Options`` (static).
     Returns a batched ``TaskSolution`` (every leaf (B, ...)): see ``instance`` and ``summarise``.
-    A multi-start batch is the batch of B copies of its task: one compilation per (task
-    structure, B, options) serves both.
+
+    strategy (``jaxmm.schedule``): "queue", one instance after another through the compiled
+    single solve (``solve_task``'s own programs: nothing more to compile, each instance costs its
+    own iterations and equals its ``solve_task`` bit for bit); "slots", ``slots`` instances
+    (default ``DEFAULT_SLOTS``) advancing together in one vmapped solve, each slot taking the next
+    guess as soon as its instance stops (what accelerators are for: a batch costs about its total
+    iterations divided by the slots; on a CPU each batched iteration costs the sum of its slots'
+    iterations). Default (None): "queue" on a CPU, "slots" on an accelerator.
+    progress: called on the host with a ``BatchProgress`` as each instance ends.
+    time_budget [s], interruptible: as for ``solve.solve_task``, for the whole batch: the
+    instances running or queued when it stops get status ``TIME_LIMIT`` or ``INTERRUPTED`` (a
+    queued one keeps its guess), the others keep theirs.
 
     mesh: a ``batch_mesh`` to split the instances over several devices (B a multiple of their
-    number). vectorised: True, the instances (of each device) advance together in one vmapped
-    solve (what accelerators are for); False, one after another in a ``lax.map`` (on a CPU as
-    fast as separate solves, none waiting for the slowest); default True, False on a mesh of CPU
-    devices (see ``default_vectorised``). time_budget [s], interruptible: as for ``solve.solve_task``,
-    but off by default (the batch is then one XLA call); the instances still running when the
-    batch stops get status ``TIME_LIMIT`` or ``INTERRUPTED``, the others keep theirs. Not with a
-    mesh.
+    number) in one call: each device runs its instances one after another on CPU devices,
+    vmapped on accelerators; with no strategy, progress, budget or interrupt.
     """
     if isinstance(tasks, Sequence):
         tasks = stack_tasks(tasks)
@@ -268,7 +309,7 @@ def solve_batch(tasks, guesses=None, options=programs.DEFAULT_OPTIONS, mesh=None
         size = batch_size(tasks)
         guesses = _batched_guesses(published_guesses(tasks) if guesses is None else guesses)
         _check_guesses(guesses, jax.eval_shape(initial_guess, instance(tasks, 0)), size)
-    return _run(tasks, guesses, options, mesh, vectorised, time_budget, interruptible)
+    return _run(tasks, guesses, options, mesh, strategy, slots, progress, time_budget, interruptible)
 
 
 # ---------------------------------------------------------------------------------- guesses
@@ -416,13 +457,13 @@ class BatchSummary:
             lines.append(f"{rank:>4}  {r.index:>8}  {r.status.name.lower():<14}  {r.objective:>12.6g}  "
                          f"{r.violation:>9.2g}  {r.iterations:>10}  {r.schedule + 1}")
         width = max((len(c) for c in self.corners), default=0)
-        for number, schedule in enumerate(self.schedules, start=1):
-            lines += ["", f"schedule {number}: instances {', '.join(map(str, schedule.members))}; "
-                          f"flight knots {_ranges(schedule.flight_knots)}"]
+        for number, group in enumerate(self.schedules, start=1):
+            lines += ["", f"schedule {number}: instances {', '.join(map(str, group.members))}; "
+                          f"flight knots {_ranges(group.flight_knots)}"]
             if self.corners:
-                n_knots = schedule.airborne.shape[0]
+                n_knots = group.airborne.shape[0]
                 lines.append(f"  {'knot':<{width}}  " + "".join(str(k % 10) for k in range(n_knots)))
-                for name, column in zip(self.corners, schedule.airborne.T):
+                for name, column in zip(self.corners, group.airborne.T):
                     lines.append(f"  {name:<{width}}  " + "".join("." if up else "#" for up in column))
         lines += ["", "(# on the ground, . off it)"] if self.corners else []
         return "\n".join(lines)

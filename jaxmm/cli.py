@@ -2,6 +2,7 @@
 
     jaxmm scenarios                                   the four scenarios and their settings
     jaxmm solve take-off [--knots N] [--target x y z] [--urdf PATH] [--out DIR] [--time-budget S]
+    jaxmm multistart take-off --guesses B [--seed S]  B sampled guesses, ranked; the best written
     jaxmm compare take-off [--knots N]                ours and the CasADi/IPOPT reference
     jaxmm robot [--urdf PATH]                         a robot summary
 
@@ -16,6 +17,11 @@ Compiled programs are kept on disk (``jaxmm.compilation.use_persistent_cache``; 
 default ``~/.cache/jaxmm/xla``, or ``$JAX_COMPILATION_CACHE_DIR`` when set; ``--no-cache``): the
 first solve of a scenario at a knot count compiles, the next ones load the programs (without
 tracing them: ``jaxmm.compilation.ExecutableStore``).
+
+``multistart`` solves B guesses sampled around the published one (``batch.sample_guesses``) with
+``batch.solve_batch`` and writes the ranked summary (``summary.txt``, ``summary.json``), the best
+instance's solution (``best.npz``) and a figure of the distinct contact schedules found
+(``schedules.png``); progress is one line per finished instance.
 """
 
 import argparse
@@ -122,7 +128,8 @@ def _task(args):
     return tasks.scenario(args.scenario, robot=robot, knots=args.knots, keep_horizon=True, **overrides)
 
 
-def _solve(task, args, progress):
+def _options(args):
+    """The solver options of ``args`` (--max-iterations, --ipopt-slacks)."""
     from jaxmm import programs
 
     options = programs.DEFAULT_OPTIONS
@@ -130,6 +137,13 @@ def _solve(task, args, progress):
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     if getattr(args, "ipopt_slacks", False):
         options = dataclasses.replace(options, ipopt_slacks=True)
+    return options
+
+
+def _solve(task, args, progress):
+    from jaxmm import programs
+
+    options = _options(args)
     if progress.live:
         options = dataclasses.replace(options, progress=progress.iteration)
     with progress.compiling(f"the solve of {task.name} (N = {task.n_intervals})") as compiling:
@@ -178,6 +192,49 @@ def _solve_command(args):
             written.append(animation.animate(task, result.trajectory, out / "motion.gif"))
     print(f"  wrote {len(written)} files to {out}/: " + ", ".join(pathlib.Path(p).name for p in written))
     return 0 if result.status.name == "CONVERGED" and report.ok else 1
+
+
+def _multistart_command(args):
+    import jax
+
+    from jaxmm import analysis, batch, io
+
+    progress = Progress(Progress.detect(args.quiet))
+    task = _task(args)
+    out = pathlib.Path(args.out if args.out is not None else pathlib.Path("jaxmm-results") / f"{task.name}-multistart")
+    out.mkdir(parents=True, exist_ok=True)
+    options = _options(args)
+    guesses = batch.sample_guesses(task, jax.random.key(args.seed), args.guesses)
+    start = time.perf_counter()
+    solved = batch.solve_batch(task, guesses, options, strategy=args.strategy, time_budget=args.time_budget,
+                               interruptible=args.time_budget is not None,
+                               progress=(lambda report: progress._write(str(report))) if progress.live else None)
+    seconds = time.perf_counter() - start
+    progress.done()
+    summary = batch.summarise(task, solved)
+    best = batch.instance(solved, summary.best.index)
+    report = analysis.validate(task, best.trajectory)
+    print(f"{task.name}: N = {task.n_intervals}, {args.guesses} guesses (seed {args.seed}) in {seconds:.1f} s, "
+          f"compiling included")
+    print(str(summary).split("\n")[0])
+    print(f"  best: instance {summary.best.index}, {summary.best.status.name.lower()}, objective "
+          f"{summary.best.objective:.6e}; validate: {'ok' if report.ok else 'FAILED: ' + ', '.join(report.failed)}")
+    (out / "summary.txt").write_text(str(summary) + "\n")
+    ranking = [dict(instance=r.index, status=r.status.name, objective=r.objective, violation=r.violation,
+                    iterations=r.iterations, schedule=r.schedule + 1) for r in summary.ranking]
+    (out / "summary.json").write_text(json.dumps(dict(
+        scenario=task.name, knots=task.n_intervals, guesses=args.guesses, seed=args.seed, seconds=seconds,
+        best_validate_ok=report.ok, ranking=ranking,
+        schedules=[dict(members=list(g.members), flight_knots=list(g.flight_knots)) for g in summary.schedules],
+    ), indent=2) + "\n")
+    written = [io.save(out / "best.npz", task, best), out / "summary.txt", out / "summary.json"]
+    if not args.no_figures:
+        from jaxmm.analysis import plots
+
+        written.append(out / "schedules.png")
+        plots.plot_schedules(summary).savefig(written[-1], dpi=120)
+    print(f"  wrote {len(written)} files to {out}/: " + ", ".join(pathlib.Path(p).name for p in written))
+    return 0 if summary.best.status.name == "CONVERGED" and report.ok else 1
 
 
 def _scenarios_command(args):
@@ -285,6 +342,15 @@ def main(argv=None):
     solve.set_defaults(run=_solve_command)
     scenarios = commands.add_parser("scenarios", help="list the published scenarios and their settings")
     scenarios.set_defaults(run=_scenarios_command)
+    multistart = commands.add_parser("multistart", help="solve a scenario from many sampled guesses; rank them")
+    _scenario_arguments(multistart)
+    multistart.add_argument("--guesses", type=int, required=True, metavar="B", help="how many sampled guesses")
+    multistart.add_argument("--seed", type=int, default=0, help="seed of the sampled guesses (default 0)")
+    multistart.add_argument("--strategy", choices=("queue", "slots"),
+                            help="how the batch runs (default: queue on a CPU, slots on an accelerator)")
+    multistart.add_argument("--out", help="output directory (default: jaxmm-results/<scenario>-multistart)")
+    multistart.add_argument("--no-figures", action="store_true", help="write no figure")
+    multistart.set_defaults(run=_multistart_command)
     compare = commands.add_parser("compare", help="solve a scenario with jaxmm and with IPOPT, side by side")
     _scenario_arguments(compare)
     compare.set_defaults(run=_compare_command)
@@ -295,6 +361,10 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if getattr(args, "knots", None) is not None and args.knots < 2:
         parser.error(f"--knots must be at least 2, got {args.knots}")
+    if getattr(args, "guesses", None) is not None and args.guesses < 1:
+        parser.error(f"--guesses must be at least 1, got {args.guesses}")
+    if getattr(args, "guesses", None) is not None and args.guesses < 1:
+        parser.error(f"--guesses must be at least 1, got {args.guesses}")
     budget = getattr(args, "time_budget", None)
     if budget is not None and not 0 < budget < float("inf"):
         parser.error(f"--time-budget must be a positive number of seconds, got {budget}")

@@ -129,6 +129,11 @@ def _leaf_type(x):
 _LOADED = {}
 
 
+def loaded_programs():
+    """How many compiled programs this process holds (``jit``'s executables; see ``clear_programs``)."""
+    return len(_LOADED)
+
+
 def clear_programs():
     """Drop the compiled programs this process holds (``jax.clear_caches`` for JAX's own): each
     holds thousands of memory mappings. Later calls load them again from the disk caches."""

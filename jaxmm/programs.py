@@ -6,8 +6,7 @@ after the other (or in slices, by ``solver.stopping.run``), every solve of a pro
 (robot, knot count, integration rule, options) shares the one heavy program, ``advance``,
 whatever its start (cold, warm, another scaling), its numbers (targets, weights, bounds), its
 time budget or its interrupts. ``solve_program`` is the whole solve as one traceable function
-(what ``batch`` vmaps or maps, in ``batch_solve`` and its slices ``batch_start``,
-``batch_advance``, ``batch_finish``, and splits over devices in ``sharded_batch_solve``);
+(what ``sharded_batch_solve`` maps or vmaps over the instances of each device);
 ``compile_solve`` compiles the three programs ahead of time;
 ``differentiable_solve`` and ``adjoint`` are the implicitly differentiated solve and the adjoint
 solve at a found optimum (``solver.sensitivity``).
@@ -68,7 +67,7 @@ def task_solution(task, nlp, solution, residuals=None):
 
 def solve_program(task, guess, options, multipliers=None, bound_multipliers=None, scaling=None):
     """The whole solve of ``task`` from ``guess`` as one traceable function → ``TaskSolution``
-    (what ``batch`` vmaps; ``solve_task`` runs it as the three compiled programs below)."""
+    (what a mesh's devices run; ``solve_task`` runs it as the three compiled programs below)."""
     nlp = transcription.stagewise_nlp(task)
     Z0, theta0 = transcription.to_variables(task, guess)
     return task_solution(task, nlp, ip.solve(nlp, Z0, theta0, options, multipliers, bound_multipliers, scaling))
@@ -223,31 +222,10 @@ def instances(options, vectorised):
     return over(lambda task, guess: solve_program(task, guess, options), vectorised)
 
 
-@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
-def batch_solve(tasks, guesses, options, vectorised=True):
-    """``solve_program`` over a batched task and its guesses (see ``instances``)."""
-    return instances(options, vectorised)(tasks, guesses)
-
-
-# The batch solve in slices, for stopping.run (a time budget, Ctrl-C).
-@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
-def batch_start(tasks, guesses, options, vectorised):
-    return over(lambda task, guess: start(task, guess, options, None, None), vectorised)(tasks, guesses)
-
-
-@functools.partial(jax.jit, static_argnames=("options", "vectorised"))
-def batch_advance(tasks, states, options, vectorised, until):
-    return over(lambda task, state: advance(task, state, options, until), vectorised)(tasks, states)
-
-
-@functools.partial(jax.jit, static_argnames="vectorised")
-def batch_finish(tasks, states, vectorised, stopped):
-    return over(lambda task, state: finish(task, state, stopped), vectorised)(tasks, states)
-
-
 @functools.partial(jax.jit, static_argnames=("options", "mesh", "vectorised"))
 def sharded_batch_solve(tasks, guesses, options, mesh, vectorised):
-    """``batch_solve`` with the instances split over the devices of ``mesh``: each device
+    """``solve_program`` over a batched task and its guesses (see ``instances``), the instances
+    split over the devices of ``mesh``: each device
     solves its own B / D instances (``jax.shard_map``), its loops stopping when its own
     instances stop. The instances are independent, so there is no collective at all (an
     SPMD-partitioned vmap would all-reduce "any instance still running" on every trip of every

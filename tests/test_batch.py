@@ -1,20 +1,21 @@
-"""Batched solves (``jaxmm.batch``): a vmapped batch gives the answers of separate solves, an
-instance that stops keeps its answer while the others run on, the sampler is seeded and stays in
-the boxes, the summary ranks and groups, and mismatched batches are rejected with errors that
-name the problem.
+"""Batched solves (``jaxmm.batch``, ``jaxmm.schedule``): the queue is the single solves bit for
+bit; the vmapped slots give the answers of separate solves, refill a slot from the queue as its
+instance stops and keep each instance's answer while the others run; a time budget stops both;
+the sampler is seeded and stays in the boxes, the summary ranks and groups, and mismatched
+batches are rejected with errors that name the problem.
 
-One compiled batch of three serves every solving test, on 14-knot tasks of one structure:
-standing still (x_N = x_0 at the standing CoM) from the published guess and from a sampled
-guess, and the reduced take-off of ``conftest`` (other targets and times; it flies), against the
-same three solved one by one (the command line's compiled take-off, which CI's main job fills the
-cache with).
+Every solving test runs 14-knot tasks of one structure: standing still (x_N = x_0 at the
+standing CoM) from the published guess and from a sampled guess, and the reduced take-off of
+``conftest`` (other targets and times; it flies), against the same three solved one by one (the
+command line's compiled take-off, which CI's main job fills the cache with).
 
-A batch and a single solve round differently (batched and unbatched XLA kernels), by 1e-16 at
-the first iteration; the nonconvex iteration amplifies it (≈ 1e-10 after 40 iterations on the
-take-off, 4e-6 at iteration 17 of the standing task below), and over hundreds of iterations the
-two may stop a few iterations apart at points equal within the solver's stationarity tolerance.
-With the slacks starting at the pushed guess (the default) the early phase amplifies faster:
-at EARLY = 10 the two have differed by 3.8e-8 at iteration 8, and a rounding-level change of the solver made the batch refine one step once more than the single
+A vmapped batch and a single solve round differently (batched and unbatched XLA kernels), by
+1e-16 at the first iteration; the nonconvex iteration amplifies it (≈ 1e-10 after 40 iterations
+on the take-off, 4e-6 at iteration 17 of the standing task below), and over hundreds of
+iterations the two may stop a few iterations apart at points equal within the solver's
+stationarity tolerance. With the slacks starting at the pushed guess (the default) the early
+phase amplifies faster: at EARLY = 10 the two have differed by 3.8e-8 at iteration 8, and a
+rounding-level change of the solver made the batch refine one step once more than the single
 solve at iteration 6 (then 1.2e-6 apart), and on the take-off the batch made one block solve less at
 iteration 3 (2.3e-7 apart). So the first ``EARLY`` iterations must agree to ``SAME_PATH`` and the
 answers to ``SAME_ANSWER``.
@@ -28,7 +29,7 @@ import numpy as np
 import pytest
 
 import jaxmm
-from jaxmm import analysis, batch, programs, solve, tasks
+from jaxmm import analysis, batch, compilation, schedule, solve, tasks
 from jaxmm.solver import interior_point as ip
 from jaxmm.transcription.constraints import variable_bounds
 
@@ -71,7 +72,22 @@ def problems(task):
 
 @pytest.fixture(scope="module")
 def solved(problems):
+    """The default strategy on a CPU: the queue."""
     return batch.solve_batch(*problems)
+
+
+SLOW_FIRST = [2, 0, 1]  # the take-off, then the two standing solves
+
+
+@pytest.fixture(scope="module")
+def slotted(problems):
+    """(the batch in SLOW_FIRST order in two vmapped slots, the ``BatchProgress`` reports): the
+    take-off holds one slot while the standing solves pass through the other."""
+    reports = []
+    reorder = lambda tree: jax.tree.map(lambda leaf: leaf[np.array(SLOW_FIRST)], tree)  # noqa: E731
+    result = batch.solve_batch(reorder(problems[0]), reorder(problems[1]), strategy="slots", slots=2,
+                               progress=reports.append)
+    return result, reports
 
 
 @pytest.fixture(scope="module")
@@ -92,12 +108,26 @@ def _with_nan(guess):
 # ----------------------------------------------------------------------------------- solving
 
 
-def test_the_batch_equals_a_loop_of_single_solves(task, problems, solved, singles):
-    assert batch.batch_size(solved) == 3
+def test_the_queue_is_the_single_solves_bit_for_bit_and_compiles_nothing_more(problems, solved, singles):
+    """The queue runs ``solve_task``'s own compiled programs: after the single solves, a queued
+    batch of the same instances loads no program and returns the same numbers exactly."""
     assert [r.status for r in singles] == [ip.Status.CONVERGED] * 3
-    for i, single in enumerate(singles):
-        mine = batch.instance(solved, i)
-        assert mine.status is single.status
+    loaded = compilation.loaded_programs()
+    again = batch.solve_batch(*problems, strategy="queue")
+    assert compilation.loaded_programs() == loaded
+    for result in (solved, again):
+        for i, single in enumerate(singles):
+            mine = batch.instance(result, i)
+            for a, b in zip(jax.tree.leaves(mine), jax.tree.leaves(single)):
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+            assert analysis.validate(batch.instance(problems[0], i), mine.trajectory).ok
+
+
+def test_the_slots_give_the_single_solves_answers(problems, slotted, singles):
+    result, _ = slotted
+    for position, i in enumerate(SLOW_FIRST):
+        mine, single = batch.instance(result, position), singles[i]
+        assert mine.status is single.status is ip.Status.CONVERGED
         np.testing.assert_allclose(np.asarray(mine.solution.history[:EARLY]),
                                    np.asarray(single.solution.history[:EARLY]), rtol=SAME_PATH)
         assert float(mine.solution.objective) == pytest.approx(float(single.solution.objective), rel=SAME_ANSWER)
@@ -105,55 +135,80 @@ def test_the_batch_equals_a_loop_of_single_solves(task, problems, solved, single
         assert analysis.validate(batch.instance(problems[0], i), mine.trajectory).ok
 
 
-def test_instances_that_stop_keep_their_answer_while_the_others_run(task, solved):
-    """The two standing solves converge at different iterations, both before the take-off
-    converges; each keeps the state it stopped in while the batch runs on: its history ends
-    where it stopped and its answer is a valid standing trajectory."""
-    iterations = np.asarray(solved.solution.iterations)
-    assert iterations[0] != iterations[1] and max(iterations[:2]) < iterations[2]
-    history = np.asarray(solved.solution.history)
+def test_a_freed_slot_takes_the_next_guess_while_the_slow_instance_runs(slotted):
+    """Three instances in two slots, the slow take-off first: the first standing solve ends
+    while the take-off runs, and the queued one takes its slot at once (two running, none queued);
+    the reports count the ended instances, with the best objective of the converged ones."""
+    result, reports = slotted
+    iterations = np.asarray(result.solution.iterations)
+    assert iterations[1] < iterations[0] and iterations[2] < iterations[0]
+    assert (reports[0].index, reports[0].finished, reports[0].running, reports[0].queued) == (1, 1, 2, 0)
+    assert sorted(r.index for r in reports[1:]) == [0, 2] and [r.finished for r in reports] == [1, 2, 3]
+    assert (reports[-1].running, reports[-1].queued) == (0, 0)
+    objective = np.asarray(result.solution.objective)
+    assert reports[0].best == objective[1] and reports[-1].best == objective.min()
+    assert reports[0].schedules == 1 and reports[-1].schedules == 2  # standing; the take-off flies
+    assert str(reports[-1]).startswith("3 finished, 0 running, 0 queued; best objective ")
+
+
+def test_instances_that_stop_keep_their_answer_while_the_others_run(task, slotted):
+    """Each standing solve keeps the state it stopped in while the take-off's slot runs on: its
+    history ends where it stopped and its answer is a valid standing trajectory."""
+    result, _ = slotted
+    iterations = np.asarray(result.solution.iterations)
+    history = np.asarray(result.solution.history)
     for i, stop in enumerate(iterations):
         assert np.all(np.isfinite(history[i, :stop])) and np.all(np.isnan(history[i, stop:]))
-    for i in (0, 1):
-        standing = batch.instance(solved, i)
+    for i in (1, 2):
+        standing = batch.instance(result, i)
         # The converged point is the one recorded at its last iteration, not a later one.
         assert float(standing.solution.objective) == pytest.approx(history[i, iterations[i] - 1, 0], rel=1e-12)
         report = analysis.validate(task, standing.trajectory)
         assert report.ok, str(report)
 
 
-def test_solve_batch_shares_the_compiled_solve_and_stops_nan_guesses(task, problems, solved):
-    """solve_batch broadcasts its task: a batch of three guesses runs the executable compiled
-    for ``solved``. A guess with a NaN is refused at the boundary, naming it; below the
-    boundary (the compiled solve itself) it stops at once with status NAN, as a single solve does."""
-    compiled = programs.batch_solve._cache_size()
+def test_nan_guesses_are_refused_at_the_boundary_and_stop_at_once_below_it(task, problems, slotted):
+    """A guess with a NaN is refused by solve_batch, naming the instances; below the boundary
+    (the slots' own programs, compiled for ``slotted``) such instances stop at once with status
+    NAN, as a single solve does."""
     guess = _with_nan(batch.instance(problems[1], 0))
     good = batch.instance(problems[1], 0)
     with pytest.raises(ValueError, match=r"joint_positions has non-finite entries .* in instances \[1, 2\]"):
         batch.solve_batch(task, [good, guess, guess])
-    stacked = batch.stack_trajectories([guess, guess, guess])
-    # called as solve_batch calls it: jit keys a static argument left at its default apart from one passed
-    result = programs.batch_solve(batch.broadcast_task(task, 3), stacked, solve.DEFAULT_OPTIONS, True)
-    assert programs.batch_solve._cache_size() == compiled
-    assert [ip.Status(int(s)) for s in result.solution.status] == [ip.Status.NAN] * 3
-    np.testing.assert_array_equal(np.asarray(result.solution.iterations), 1)
-    options = solve.DEFAULT_OPTIONS  # the solve_task's three programs, below its boundary check
-    state = programs.start(task, guess, options, None, None)
-    single = programs.finish(task, programs.advance(task, state, options, options.max_iterations), int(ip.Status.MAX_ITERATIONS))
-    assert single.status is ip.Status.NAN and int(single.solution.iterations) == 1
+    ended = []
+    results = schedule.run_slots(batch.broadcast_task(task, 2), batch.stack_trajectories([guess, guess]),
+                                 solve.DEFAULT_OPTIONS, 2, lambda j, r: ended.append(j))
+    assert sorted(ended) == [0, 1]
+    assert [r.status for r in results] == [ip.Status.NAN] * 2
+    assert [int(r.solution.iterations) for r in results] == [1, 1]
 
 
-@pytest.mark.usefixtures("_free_compiled_programs_after")
-@pytest.mark.parametrize("vectorised", [True, False], ids=["vmap", "map"])
-def test_a_time_budget_stops_the_batch_on_its_path(problems, solved, vectorised):
-    """A budget of 1 ms: every instance stops after two iterations (the first slice, then one)
-    with status TIME_LIMIT and the first two history rows of the batch that ran to the end."""
-    stopped = batch.solve_batch(*problems, time_budget=1e-3, vectorised=vectorised)
+def test_a_time_budget_stops_the_queue_on_its_path(problems, solved):
+    """A budget of 1 ms: the first instance stops after at most two iterations (the first slice,
+    then one) with status TIME_LIMIT and the history of its full solve; the queued ones stop
+    unstarted, at their guesses."""
+    stopped = batch.solve_batch(*problems, time_budget=1e-3)
     assert [ip.Status(int(s)) for s in stopped.solution.status] == [ip.Status.TIME_LIMIT] * 3
-    np.testing.assert_array_equal(np.asarray(stopped.solution.iterations), 2)
-    np.testing.assert_allclose(np.asarray(stopped.solution.history)[:, :2],
-                               np.asarray(solved.solution.history)[:, :2], rtol=SAME_PATH)
+    iterations = np.asarray(stopped.solution.iterations)
+    assert iterations[0] <= 2 and list(iterations[1:]) == [0, 0]
+    np.testing.assert_array_equal(np.asarray(stopped.solution.history)[0, :iterations[0]],
+                                  np.asarray(solved.solution.history)[0, :iterations[0]])
     assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in jax.tree.leaves(stopped.trajectory))
+
+
+def test_a_time_budget_stops_the_slots_after_their_first_slice(problems, slotted):
+    """The budget counts from the end of the first slice (which compiles): the two instances in
+    slots stop after one more slice of ``SLICE_ITERATIONS``, on the path of the full batch; the
+    queued one stops unstarted."""
+    full, _ = slotted
+    reorder = lambda tree: jax.tree.map(lambda leaf: leaf[np.array(SLOW_FIRST)], tree)  # noqa: E731
+    stopped = batch.solve_batch(reorder(problems[0]), reorder(problems[1]), strategy="slots", slots=2,
+                                time_budget=1e-3)
+    assert [ip.Status(int(s)) for s in stopped.solution.status] == [ip.Status.TIME_LIMIT] * 3
+    ran = 2 * schedule.SLICE_ITERATIONS
+    assert list(np.asarray(stopped.solution.iterations)) == [ran, ran, 0]
+    np.testing.assert_allclose(np.asarray(stopped.solution.history)[:2, :ran],
+                               np.asarray(full.solution.history)[:2, :ran], rtol=SAME_PATH)
 
 
 def test_a_broadcast_task_has_the_leaf_types_of_stacked_tasks(task):
@@ -320,8 +375,12 @@ def test_mismatched_batches_are_rejected_before_compiling(task, problems):
         batch.solve_batch([task, task], guesses)
     with pytest.raises(ValueError, match="time_budget must be a positive number of seconds, got -1"):
         batch.solve_batch(task, guesses, time_budget=-1)
-    with pytest.raises(ValueError, match="a sharded batch is one call: it takes no time_budget"):
+    with pytest.raises(ValueError, match="a sharded batch is one call: it takes no strategy, progress, time_budget"):
         batch.solve_batch(task, guesses, mesh=batch.batch_mesh(), time_budget=10.0)
+    with pytest.raises(ValueError, match=r"strategy must be one of \('queue', 'slots'\)"):
+        batch.solve_batch(task, guesses, strategy="vmap")
+    with pytest.raises(ValueError, match="slots must be a positive integer, got 0"):
+        batch.solve_batch(task, guesses, strategy="slots", slots=0)
     with pytest.raises(ValueError, match="3 guesses for a batch of 2 tasks"):
         batch.solve_batch(batch.stack_tasks([task, task]), guesses)
     with pytest.raises(ValueError, match=r"a batch of one task needs its guesses \(see sample_guesses\)"):

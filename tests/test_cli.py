@@ -58,6 +58,27 @@ def test_solve_writes_solution_report_figures_and_animation(tmp_path, capsys):
         assert gif.n_frames > 30  # 8 fps over the 3.5–7 s horizon
 
 
+def test_multistart_ranks_the_guesses_and_writes_the_best_and_its_schedules(tmp_path, capsys):
+    """Two sampled guesses of the 14-knot take-off (the queue: the compiled solve of the test
+    above): the ranked summary, the best instance's solution and the schedules figure."""
+    from jaxmm import io
+
+    out = tmp_path / "multi"
+    code = main(["multistart", "take-off", "--knots", "14", "--guesses", "2", "--seed", "3", "--out", str(out), "--quiet"])
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["guesses"] == 2 and summary["seed"] == 3 and len(summary["ranking"]) == 2
+    assert sorted(r["instance"] for r in summary["ranking"]) == [0, 1]
+    best = summary["ranking"][0]
+    assert code == (0 if best["status"] == "CONVERGED" and summary["best_validate_ok"] else 1), printed
+    assert f"best: instance {best['instance']}" in printed and "2 guesses (seed 3)" in printed
+    assert (out / "summary.txt").read_text().startswith("2 instances: ")
+    task, result = io.load(out / "best.npz")
+    assert task.n_intervals == 14 and float(result.solution.objective) == pytest.approx(best["objective"], rel=1e-12)
+    assert sum(len(g["members"]) for g in summary["schedules"]) == 2
+    assert (out / "schedules.png").stat().st_size > 5_000
+
+
 def test_progress_is_shown_on_a_terminal_and_silent_otherwise():
     stream = io_module.StringIO()
     progress = Progress(True, stream)
@@ -100,6 +121,7 @@ def test_compare_prints_both_solvers_side_by_side(solved_take_off, capsys, monke
     (["solve", "hover"], "unknown scenario 'hover'"),
     (["solve", "take-off", "--target", "9", "0", "0.8", "--no-figures"], "outside the workspace"),
     (["solve", "take-off", "--urdf", "/no/such.urdf"], "URDF file not found: /no/such.urdf"),
+    (["multistart", "hover", "--guesses", "2"], "unknown scenario 'hover'"),
 ])
 def test_solve_rejects_bad_input_with_a_message_and_no_output(argv, message, tmp_path, capsys):
     assert main(argv + ["--out", str(tmp_path / "out")]) == 2
@@ -140,6 +162,9 @@ def test_knots_below_two_is_a_usage_error(capsys):
     with pytest.raises(SystemExit) as exit:
         main(["solve", "take-off", "--knots", "1"])
     assert exit.value.code == 2 and "--knots must be at least 2" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit:
+        main(["multistart", "take-off", "--guesses", "0"])
+    assert exit.value.code == 2 and "--guesses must be at least 1" in capsys.readouterr().err
 
 
 def test_an_unconverged_solve_is_written_and_reported_with_exit_1(solved_take_off, tmp_path, capsys, monkeypatch):

@@ -23,11 +23,12 @@ LAYERS = {
     "analysis": {"rigid_body", "robots", "physics", "transcription", "tasks", "solver"},
     "programs": {"compilation", "stagewise", "transcription", "tasks", "solver"},
     "solve": {"programs", "solver", "transcription", "analysis"},
-    "batch": {"programs", "solve", "solver", "transcription", "tasks", "analysis"},
+    "schedule": {"programs", "solver"},
+    "batch": {"programs", "schedule", "solve", "solver", "transcription", "tasks", "analysis"},
     "tuning": {"solve", "solver"},
     "io": {"rigid_body", "robots", "transcription", "solver", "programs"},
     "reference": {"rigid_body", "robots", "physics", "transcription", "tasks"},
-    "cli": {"compilation", "robots", "tasks", "solver", "analysis", "programs", "io", "reference", "jaxmm"},
+    "cli": {"compilation", "robots", "tasks", "solver", "analysis", "programs", "batch", "io", "reference", "jaxmm"},
     "__main__": {"cli"},
 }
 

@@ -4,8 +4,8 @@ must be set before JAX starts, hence a subprocess): the sharded batch gives the 
 unsharded one (a weight sweep from sampled guesses: multi-start runs the same program) up to
 rounding, bit-identical from run to run, its answer split over both devices; a batch that does
 not split evenly is refused. On CPU devices each device runs its instances one after another
-(``vectorised=False``, see ``batch.default_vectorised``: batched LAPACK kernels hang there), so the
-reference is the unsharded batch run the same way.
+(see ``batch._vectorised_on``: batched LAPACK kernels hang there), so the reference is the
+unsharded batch run the same way (``strategy="queue"``: the single solves).
 
 Not bit-identical to it: XLA compiles the per-device program of ``shard_map`` differently from
 the plain jit (measured: the unsharded batch, a one-device mesh and single solves agree bit for
@@ -42,7 +42,7 @@ SCRIPT = textwrap.dedent("""
     guesses = batch.sample_guesses(task, jax.random.key(0), 4)
     sweep = [dataclasses.replace(task, weights=dataclasses.replace(task.weights, thrust=task.weights.thrust * f))
              for f in (0.5, 1.0, 2.0, 4.0)]
-    plain = batch.solve_batch(sweep, guesses, options, vectorised=False)
+    plain = batch.solve_batch(sweep, guesses, options, strategy="queue")
     sharded = batch.solve_batch(sweep, guesses, options, mesh=mesh)
     again = batch.solve_batch(sweep, guesses, options, mesh=mesh)
     objectives = [np.asarray(r.solution.objective) for r in (plain, sharded)]

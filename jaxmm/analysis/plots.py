@@ -174,6 +174,27 @@ def plot_contact_schedule(task, trajectory, *, ax=None, contact_height=CONTACT_H
     return fig
 
 
+def plot_schedules(summary, *, fig=None):
+    """The distinct contact schedules of a batch (``batch.summarise``'s ``BatchSummary``), one
+    panel each, best first: one row per contact corner, one column per knot, dark where the
+    corner is on the ground; titled with the schedule's instances and best objective. Returns
+    the Figure."""
+    count, corners = len(summary.schedules), summary.corners
+    if fig is None:
+        fig = Figure(figsize=(8, (0.25 * len(corners) + 0.9) * count + 0.3), layout="constrained")
+    objective = {r.index: r.objective for r in summary.ranking}
+    for number, (schedule, ax) in enumerate(zip(summary.schedules, np.atleast_1d(fig.subplots(count, 1, sharex=True))),
+                                            start=1):
+        ax.imshow(~schedule.airborne.T, aspect="auto", cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest")
+        ax.set_yticks(range(len(corners)), corners, fontsize="x-small")
+        members = schedule.members
+        ax.set_title(f"schedule {number}: {len(members)} instance{'s' if len(members) != 1 else ''} "
+                     f"(best {members[0]}, objective {objective[members[0]]:.6g})", fontsize="small")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("knot (dark: on the ground)")
+    return fig
+
+
 def plot_joints(task, trajectory, *, fig=None, columns=6, contact_height=CONTACT_HEIGHT):
     """One panel per optimised joint: s [deg] against time, its limits (the task's, grey
     bands beyond them) and the reference posture s̄ (dotted), flight phases shaded.

@@ -32,6 +32,30 @@ import numpy as np
 from jax.scipy.linalg import solve_triangular
 
 
+def _one_by_one_on_cpu(fn):
+    """``fn`` (LAPACK-backed, of arrays) whose ``vmap`` runs the instances one after another
+    (``lax.map``) on a CPU, and as one batched kernel elsewhere. jaxlib's batched CPU LAPACK
+    kernels split their batch over the intra-op thread pool and block a pool thread until the
+    pieces are done: under a vmapped solve the two chains of the two-ended factorisation run
+    two such kernels at once and, on a two-thread pool, each waits forever for work queued behind
+    the other (seen: both threads in ``lapack_dpotrf_ffi``'s ``ParallelBatchMap``)."""
+    wrapped = jax.custom_batching.custom_vmap(fn)
+
+    @wrapped.def_vmap
+    def rule(axis_size, in_batched, *args):
+        args = tuple(a if batched else jnp.broadcast_to(a, (axis_size,) + a.shape) for a, batched in zip(args, in_batched))
+        if jax.default_backend() == "cpu":
+            return jax.lax.map(lambda xs: wrapped(*xs), args), True
+        return jax.vmap(fn)(*args), True
+
+    return wrapped
+
+
+cholesky = _one_by_one_on_cpu(jnp.linalg.cholesky)
+lower_solve = _one_by_one_on_cpu(lambda a, b: solve_triangular(a, b, lower=True))
+lower_transposed_solve = _one_by_one_on_cpu(lambda a, b: solve_triangular(a, b, lower=True, trans="T"))
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Chain:
@@ -107,12 +131,12 @@ def _factor_tridiagonal(D, L, order, s, shift):
     def below(previous, k):
         """(L_{k−1} Lc_{k−1}^{−T})ᵀ's non-zero rows (s, n), for block k of the forward chain (previous:
         Lc_{k−1} as the chain stores it): they need only the trailing s × s block of Lc_{k−1}."""
-        return solve_triangular(previous[n - s :, n - s :].T, coupling(k - 1).T, lower=True)
+        return lower_solve(previous[n - s :, n - s :].T, coupling(k - 1).T)
 
     def above(following, k):
         """Lc_{k+1}^{−1} L_k's non-zero columns (n, s), for block k of the backward chain
         (following: Lc_{k+1} as the chain stores it): their Gram product touches only the last s rows and columns of block k."""
-        return solve_triangular(following.T, coupling(k), lower=True)
+        return lower_solve(following.T, coupling(k))
 
     def minus_above(A, Y):
         return A.at[n - s :, n - s :].add(-(Y.T @ Y))
@@ -129,9 +153,9 @@ def _factor_tridiagonal(D, L, order, s, shift):
         # array, XLA copied the whole array at every step (a factorisation 3.6× slower).
         j, Lf, Wf, Lb, Wb, count, _ = carry
         Wt = below(Lf[j - 1], j)
-        forward = jnp.linalg.cholesky(block(j) - Wt.T @ Wt)
+        forward = cholesky(block(j) - Wt.T @ Wt)
         Y = above(Lb[j - 1], K - 1 - j)
-        backward = jnp.linalg.cholesky(minus_above(block(K - 1 - j), Y))
+        backward = cholesky(minus_above(block(K - 1 - j), Y))
         has_b = j < back  # K even: the backward chain has no block at the last step
         ok_f, ok_b = positive(forward), positive(backward) | ~has_b
         Lf, Wf = Lf.at[j].set(_stored(forward)), Wf.at[j - 1].set(Wt.T)
@@ -144,10 +168,10 @@ def _factor_tridiagonal(D, L, order, s, shift):
     Wf, Wb = jnp.zeros((M, n, s), D.dtype), jnp.zeros((M, n, s), D.dtype)
     count, ok = jnp.asarray(0), jnp.asarray(True)
     if M >= 1:
-        first = jnp.linalg.cholesky(block(0))
+        first = cholesky(block(0))
         Lf, count, ok = Lf.at[0].set(_stored(first)), count + positive(first), positive(first)
     if back >= 1:
-        last = jnp.linalg.cholesky(block(K - 1))
+        last = cholesky(block(K - 1))
         Lb, count, ok = Lb.at[0].set(_stored(last)), count + positive(last), ok & positive(last)
     if M >= 2:
         _, Lf, Wf, Lb, Wb, count, ok = jax.lax.while_loop(running, step, (jnp.asarray(1), Lf, Wf, Lb, Wb, count, ok))
@@ -159,7 +183,7 @@ def _factor_tridiagonal(D, L, order, s, shift):
     if back >= 1:
         Y = above(Lb[back - 1], M)
         A, Wb = minus_above(A, Y), Wb.at[back - 1].set(Y)
-    middle = jnp.linalg.cholesky(A)
+    middle = cholesky(A)
     return Chain(Lf, Wf), middle, Chain(Lb, Wb), count + (ok & positive(middle))
 
 
@@ -173,10 +197,10 @@ def _solve_tridiagonal(forward, middle, backward, R):
     Lf, Wf, Lb, Wb = forward.blocks, forward.couplings, backward.blocks, backward.couplings
 
     def lower(stored, rhs):
-        return solve_triangular(stored.T, rhs, lower=True)
+        return lower_solve(stored.T, rhs)
 
     def upper(stored, rhs):
-        return solve_triangular(stored.T, rhs, lower=True, trans="T")
+        return lower_transposed_solve(stored.T, rhs)
 
     def inward(j, carry):
         yf, yb = carry
@@ -261,7 +285,7 @@ def factor(D, L, B, C, coupled=None, shift=None, corner_shift=None):
     # A⁻¹ B only when every block was factored: an inertia correction's failed attempts (1.5 of
     # the 2.5 per iteration on take-off N = 70) then cost no solve.
     X = jax.lax.cond(factored == K, lambda: _solve_tridiagonal(forward, middle, backward, B), lambda: jnp.zeros_like(B))
-    schur = jnp.linalg.cholesky(C - jnp.einsum("kna,knb->ab", B, X))
+    schur = cholesky(C - jnp.einsum("kna,knb->ab", B, X))
     return BlockCholesky(forward=forward, middle=middle, backward=backward, border_solution=X, schur=schur, border=B,
                          factored=factored, order=order)
 

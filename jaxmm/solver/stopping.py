@@ -30,7 +30,7 @@ MAX_SLICE = 1000  # iterations
 
 
 @contextlib.contextmanager
-def _interrupt_flag(enabled):
+def interrupt_flag(enabled):
     """A dict whose "set" becomes True at the first SIGINT while inside (only on the main
     thread, where Python delivers signals; elsewhere the flag never sets)."""
     flag = {"set": False}
@@ -57,20 +57,21 @@ def check_budget(time_budget):
         raise ValueError(f"time_budget must be a positive number of seconds, got {time_budget!r}")
 
 
-def run(state, advance, finish, max_iterations, *, time_budget=None, interruptible=True):
+def run(state, advance, finish, max_iterations, *, time_budget=None, interruptible=True, flag=None):
     """Iterate ``state`` (an ``interior_point.State``, possibly batched) to the end, in slices.
 
     advance(state, until) → state: iterations up to ``until`` (an int); finish(state, stopped) →
     the result, with ``stopped`` the status of instances still running (a ``Status`` int).
     time_budget: seconds of iterating after the first slice of one iteration (None: no limit;
     the first slice may include compiling: it does not count); interruptible: the first Ctrl-C
-    stops the solve after the running slice. Returns finish's result: ``MAX_ITERATIONS`` if the
+    stops the solve after the running slice; flag: the dict of an enclosing ``interrupt_flag``
+    to watch instead of installing one (a batch of solves stopped by one Ctrl-C). Returns finish's result: ``MAX_ITERATIONS`` if the
     iteration limit ended it, else ``TIME_LIMIT`` or ``INTERRUPTED`` for whatever still ran.
     """
     check_budget(time_budget)
     deadline = math.inf
     stopped, size, per_iteration = Status.MAX_ITERATIONS, 1, None
-    with _interrupt_flag(interruptible) as interrupt:
+    with contextlib.nullcontext(flag) if flag is not None else interrupt_flag(interruptible) as interrupt:
         while True:
             done = np.asarray(state.iterations).max(initial=0)
             left = deadline - time.monotonic()
