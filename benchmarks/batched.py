@@ -10,8 +10,8 @@ published 3.5–7 s horizon) on the default iRonCub; the guesses are
 What is measured (wall clock, compiling included, in a fresh process each):
 
 * one solve: ``solve_task(task, guess 0)``;
-* for each strategy (--strategies, default "queue"; "slots" is the vmapped batch, for
-  accelerators) and each B (--sizes, default 1 16 64): ``solve_batch(task, guesses, strategy=…)``
+* for each strategy (--strategies, default "queue" and "processes"; "slots" is the vmapped
+  batch, for accelerators) and each B (--sizes, default 1 16 64): ``solve_batch(task, guesses, strategy=…)``
   (slots: --slots, default ``batch.DEFAULT_SLOTS``), its wall time, its ratio to one solve (the
   goal: ≤ 10× for B = 16, ≤ 40× for B = 64 on a 2-core CPU), the time per instance, and the
   instances' iterations and statuses;
@@ -21,7 +21,7 @@ What is measured (wall clock, compiling included, in a fresh process each):
 Pin the process to cores with ``taskset`` to say what a machine of that many cores does; XLA's
 thread pool is left at its default (the cores the process may use).
 
-Usage: python benchmarks/batched.py [--knots 14] [--sizes 1 16 64] [--strategies queue slots]
+Usage: python benchmarks/batched.py [--knots 14] [--sizes 1 16 64] [--strategies queue processes slots]
        [--slots S] [--seed 0]
 """
 
@@ -77,7 +77,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--knots", type=int, default=14, help="N (default 14)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 16, 64], help="batch sizes B")
-    parser.add_argument("--strategies", nargs="+", default=["queue"], choices=["queue", "slots"])
+    parser.add_argument("--strategies", nargs="+", default=["queue", "processes"], choices=["queue", "processes", "slots"])
     parser.add_argument("--slots", type=int, default=64, help="slots of the 'slots' strategy")
     parser.add_argument("--seed", type=int, default=0, help="seed of sample_guesses")
     args = parser.parse_args()
@@ -102,7 +102,7 @@ def main():
                      str(one["iterations"][0]), statuses(one["status"]))], []
     for (strategy, size), run in runs.items():
         iterations = np.asarray(run["iterations"])
-        name = strategy if strategy == "queue" else f"slots ({min(args.slots, size)})"
+        name = f"slots ({min(args.slots, size)})" if strategy == "slots" else strategy
         rows.append((name, size, format_time(run["seconds"]), f"{run['seconds'] / one['seconds']:.3g}×",
                      format_time(run["seconds"] / size), f"{iterations.min()}–{iterations.max()} (Σ {iterations.sum()})",
                      statuses(run["status"])))

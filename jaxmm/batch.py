@@ -255,12 +255,17 @@ def _run(tasks, guesses, options, mesh, strategy, slots, progress, time_budget, 
         split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
         return programs.sharded_batch_solve(jax.device_put(tasks, split), jax.device_put(guesses, split), options, mesh,
                                             _vectorised_on(mesh))
-    strategy = schedule.default_strategy(strategy)
+    strategy = schedule.default_strategy(strategy, size)
     slots = DEFAULT_SLOTS if slots is None else slots
     if isinstance(slots, bool) or not isinstance(slots, (int, np.integer)) or slots < 1:
         raise ValueError(f"slots must be a positive integer, got {slots!r}")
     if strategy == "queue":
         results = schedule.run_queue(tasks, guesses, options, _Tally(size, 1, progress), time_budget, interruptible)
+    elif strategy == "processes":
+        if time_budget is not None or interruptible:
+            raise ValueError("strategy 'processes' takes no time_budget or interrupt: use 'queue' or 'slots'")
+        workers = min(len(schedule.cores()), size)
+        results = schedule.run_processes(tasks, guesses, options, _Tally(size, workers, progress), workers)
     else:
         tally = _Tally(size, min(slots, size), progress)
         results = schedule.run_slots(tasks, guesses, options, slots, tally, time_budget, interruptible)
@@ -281,11 +286,14 @@ def solve_batch(tasks, guesses=None, options=programs.DEFAULT_OPTIONS, mesh=None
 
     strategy (``jaxmm.schedule``): "queue", one instance after another through the compiled
     single solve (``solve_task``'s own programs: nothing more to compile, each instance costs its
-    own iterations and equals its ``solve_task`` bit for bit); "slots", ``slots`` instances
+    own iterations and equals its ``solve_task`` bit for bit); "processes", the same spread over
+    one worker process per core, each pinned to its core (every worker compiles the solve once,
+    all at the same time; no time budget or interrupt); "slots", ``slots`` instances
     (default ``DEFAULT_SLOTS``) advancing together in one vmapped solve, each slot taking the next
     guess as soon as its instance stops (what accelerators are for: a batch costs about its total
     iterations divided by the slots; on a CPU each batched iteration costs the sum of its slots'
-    iterations). Default (None): "queue" on a CPU, "slots" on an accelerator.
+    iterations). Default (None): "slots" on an accelerator; on a CPU "processes" for more than one
+    instance and core, else "queue".
     progress: called on the host with a ``BatchProgress`` as each instance ends.
     time_budget [s], interruptible: as for ``solve.solve_task``, for the whole batch: the
     instances running or queued when it stops get status ``TIME_LIMIT`` or ``INTERRUPTED`` (a

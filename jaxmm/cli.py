@@ -346,8 +346,9 @@ def main(argv=None):
     _scenario_arguments(multistart)
     multistart.add_argument("--guesses", type=int, required=True, metavar="B", help="how many sampled guesses")
     multistart.add_argument("--seed", type=int, default=0, help="seed of the sampled guesses (default 0)")
-    multistart.add_argument("--strategy", choices=("queue", "slots"),
-                            help="how the batch runs (default: queue on a CPU, slots on an accelerator)")
+    multistart.add_argument("--strategy", choices=("queue", "processes", "slots"),
+                            help="how the batch runs (default: one process per core on a CPU, vmapped slots on "
+                                 "an accelerator; see jaxmm.schedule)")
     multistart.add_argument("--out", help="output directory (default: jaxmm-results/<scenario>-multistart)")
     multistart.add_argument("--no-figures", action="store_true", help="write no figure")
     multistart.set_defaults(run=_multistart_command)

@@ -1,4 +1,4 @@
-"""How a batch's instances are run: the two strategies of ``batch.solve_batch``.
+"""How a batch's instances are run: the three strategies of ``batch.solve_batch``.
 
 ``queue``: the instances one after another through the compiled programs of a single solve
 (``programs.compiled_programs``: the ones ``solve_task`` compiles and reuses), so that the batch
@@ -8,6 +8,11 @@ process: XLA already spreads one solve's kernels over the cores, and neither two
 CPU devices running two solves at once finished sooner (docs/design-decisions.md, "CPU batches:
 one solve after another").
 
+``processes``: the instances spread over worker processes, one per core, each pinned to its core
+and taking the next instance of the queue when it finishes one, through its own compiled single
+solve (all workers compile at once, in the time of one compile). A solve's small kernels run
+faster on one core than spread over two, so this is what uses a CPU's cores for a batch.
+
 ``slots``: ``slots`` instances advance together in one vmapped ``advance`` (what accelerators
 are for), ``SLICE_ITERATIONS`` iterations at a time; between slices, an instance that has stopped
 (converged, failed, or at its iteration cap) is finished and its slot takes the next guess of
@@ -16,20 +21,25 @@ by the slots, not the slots times the slowest instance. Each slot keeps its own 
 cap and status: an instance's iterates are those of its single solve, up to the rounding of
 batched kernels.
 
-Both call ``on_finish(index, result)`` on the host as each instance ends, and stop every instance
-still running or queued when a time budget runs out (``Status.TIME_LIMIT``) or at a Ctrl-C
-(``Status.INTERRUPTED``) when asked to; an instance that never started keeps its guess.
+All call ``on_finish(index, result)`` on the host as each instance ends. The queue and the slots
+stop every instance still running or queued when a time budget runs out
+(``Status.TIME_LIMIT``) or at a Ctrl-C (``Status.INTERRUPTED``) when asked to; an instance that
+never started keeps its guess.
 """
 
+import contextlib
 import functools
 import math
+import multiprocessing
+import os
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm import programs
+from jaxmm import compilation, programs
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import stopping
 
@@ -37,17 +47,26 @@ from jaxmm.solver import stopping
 # iterations for its slot to be refilled, and each slice costs one transfer of the statuses.
 SLICE_ITERATIONS = 10
 
-STRATEGIES = ("queue", "slots")
+STRATEGIES = ("queue", "processes", "slots")
 
 
-def default_strategy(strategy, devices=None):
-    """``strategy`` when given, else "queue" on CPU devices and "slots" on accelerators."""
+def cores():
+    """The CPU cores this process may run on."""
+    return sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else list(range(os.cpu_count() or 1))
+
+
+def default_strategy(strategy, size, devices=None):
+    """``strategy`` when given; else, for a batch of ``size``, "slots" on accelerators and, on a
+    CPU, "processes" when there are more instances than one and more cores than one, "queue"
+    otherwise."""
     if strategy is not None:
         if strategy not in STRATEGIES:
             raise ValueError(f"strategy must be one of {STRATEGIES} (or None: chosen per backend), got {strategy!r}")
         return strategy
     devices = jax.devices() if devices is None else devices
-    return "queue" if devices[0].platform == "cpu" else "slots"
+    if devices[0].platform != "cpu":
+        return "slots"
+    return "processes" if size > 1 and len(cores()) > 1 else "queue"
 
 
 @jax.jit
@@ -122,6 +141,73 @@ def _run_one(state, advance, finish, max_iterations, clock):
     if stop is not None:
         return finish(state, stop)
     return stopping.run(state, advance, finish, max_iterations, time_budget=left, flag=clock.flag)
+
+
+_WORKER = {}  # in a worker process of ``run_processes``: its batch and solve
+
+
+def _worker_start(tasks, guesses, options, places, cache, counter):
+    """A worker process of ``run_processes``: pinned to the next core of ``places``, with the
+    parent's executable store (``cache``: its directory, or None)."""
+    with counter.get_lock():
+        number = counter.value
+        counter.value += 1
+    os.sched_setaffinity(0, {places[number % len(places)]})
+    if cache is not None:
+        compilation.use_persistent_cache(cache)
+    _WORKER.update(tasks=tasks, guesses=guesses, options=options)
+
+
+def _worker_solve(j):
+    """(j, instance j's ``TaskSolution`` with NumPy leaves), solved in this worker."""
+    tasks, guesses, options = _WORKER["tasks"], _WORKER["guesses"], _WORKER["options"]
+    task, guess = _take(tasks, j), _take(guesses, j)
+    started, advanced, finished = programs.compiled_programs(task, guess, options, None, None)
+    iterating = ip.iteration_options(options)
+    state = started(task, guess, options, None, None)
+    result = finished(task, advanced(task, state, iterating, iterating.max_iterations), int(ip.Status.MAX_ITERATIONS))
+    return j, jax.device_get(result)
+
+
+@contextlib.contextmanager
+def _main_script_hidden():
+    """While starting workers: ``__main__`` without its file and spec, so that ``spawn`` does not
+    re-run the caller's script in every worker (a script without an ``if __name__ ==
+    "__main__"`` guard would start workers recursively); the workers need only jaxmm."""
+    main = sys.modules.get("__main__")
+    if main is None:
+        yield
+        return
+    saved = {key: main.__dict__.pop(key) for key in ("__file__",) if key in main.__dict__}
+    spec, main.__spec__ = getattr(main, "__spec__", None), None
+    try:
+        yield
+    finally:
+        main.__dict__.update(saved)
+        main.__spec__ = spec
+
+
+def run_processes(tasks, guesses, options, on_finish, workers=None):
+    """The batch's instances spread over ``workers`` processes (default: one per core this
+    process may use), each pinned to its own core and solving the next instance of the queue
+    as it finishes one, through its own compiled single solve (compiled in every worker at
+    once, or loaded from the executable store where the parent has one). Returns the B
+    ``TaskSolution``s (NumPy leaves) in order."""
+    size = np.shape(guesses.total_time)[0]
+    places = cores()
+    workers = min(len(places) if workers is None else workers, size)
+    cache = jax.config.jax_compilation_cache_dir if compilation.store() is not None else None
+    context = multiprocessing.get_context("spawn")  # a fork would copy JAX's threads' locks
+    counter = context.Value("i", 0)
+    arguments = (jax.device_get(tasks), jax.device_get(guesses), options, places, cache, counter)
+    results = [None] * size
+    with _main_script_hidden():
+        pool = context.Pool(workers, initializer=_worker_start, initargs=arguments)
+    with pool:
+        for j, result in pool.imap_unordered(_worker_solve, range(size)):
+            results[j] = result
+            on_finish(j, result)
+    return results
 
 
 def _call(program, *args):

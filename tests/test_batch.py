@@ -72,8 +72,7 @@ def problems(task):
 
 @pytest.fixture(scope="module")
 def solved(problems):
-    """The default strategy on a CPU: the queue."""
-    return batch.solve_batch(*problems)
+    return batch.solve_batch(*problems, strategy="queue")
 
 
 SLOW_FIRST = [2, 0, 1]  # the take-off, then the two standing solves
@@ -121,6 +120,24 @@ def test_the_queue_is_the_single_solves_bit_for_bit_and_compiles_nothing_more(pr
             for a, b in zip(jax.tree.leaves(mine), jax.tree.leaves(single)):
                 np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
             assert analysis.validate(batch.instance(problems[0], i), mine.trajectory).ok
+
+
+def test_the_processes_give_the_single_solves_answers(problems, singles):
+    """Two worker processes, one per core (each pinned: its kernels round as one core does, so
+    to the batch tolerance rather than bit for bit), and the default strategy on this CPU."""
+    if len(schedule.cores()) < 2:
+        pytest.skip("this machine has one core: the default is the queue")
+    assert schedule.default_strategy(None, 3) == "processes"
+    ended = []
+    result = batch.solve_batch(*problems, progress=ended.append)
+    assert sorted(r.index for r in ended) == [0, 1, 2] and ended[-1].finished == 3
+    for i, single in enumerate(singles):
+        mine = batch.instance(result, i)
+        assert mine.status is single.status is ip.Status.CONVERGED
+        np.testing.assert_allclose(np.asarray(mine.solution.history[:EARLY]),
+                                   np.asarray(single.solution.history[:EARLY]), rtol=SAME_PATH)
+        assert float(mine.solution.objective) == pytest.approx(float(single.solution.objective), rel=SAME_ANSWER)
+        assert analysis.validate(batch.instance(problems[0], i), mine.trajectory).ok
 
 
 def test_the_slots_give_the_single_solves_answers(problems, slotted, singles):
@@ -187,7 +204,7 @@ def test_a_time_budget_stops_the_queue_on_its_path(problems, solved):
     """A budget of 1 ms: the first instance stops after at most two iterations (the first slice,
     then one) with status TIME_LIMIT and the history of its full solve; the queued ones stop
     unstarted, at their guesses."""
-    stopped = batch.solve_batch(*problems, time_budget=1e-3)
+    stopped = batch.solve_batch(*problems, strategy="queue", time_budget=1e-3)
     assert [ip.Status(int(s)) for s in stopped.solution.status] == [ip.Status.TIME_LIMIT] * 3
     iterations = np.asarray(stopped.solution.iterations)
     assert iterations[0] <= 2 and list(iterations[1:]) == [0, 0]
@@ -377,8 +394,10 @@ def test_mismatched_batches_are_rejected_before_compiling(task, problems):
         batch.solve_batch(task, guesses, time_budget=-1)
     with pytest.raises(ValueError, match="a sharded batch is one call: it takes no strategy, progress, time_budget"):
         batch.solve_batch(task, guesses, mesh=batch.batch_mesh(), time_budget=10.0)
-    with pytest.raises(ValueError, match=r"strategy must be one of \('queue', 'slots'\)"):
+    with pytest.raises(ValueError, match=r"strategy must be one of \('queue', 'processes', 'slots'\)"):
         batch.solve_batch(task, guesses, strategy="vmap")
+    with pytest.raises(ValueError, match="strategy 'processes' takes no time_budget or interrupt"):
+        batch.solve_batch(task, guesses, strategy="processes", time_budget=10.0)
     with pytest.raises(ValueError, match="slots must be a positive integer, got 0"):
         batch.solve_batch(task, guesses, strategy="slots", slots=0)
     with pytest.raises(ValueError, match="3 guesses for a batch of 2 tasks"):

@@ -23,7 +23,7 @@ LAYERS = {
     "analysis": {"rigid_body", "robots", "physics", "transcription", "tasks", "solver"},
     "programs": {"compilation", "stagewise", "transcription", "tasks", "solver"},
     "solve": {"programs", "solver", "transcription", "analysis"},
-    "schedule": {"programs", "solver"},
+    "schedule": {"compilation", "programs", "solver"},
     "batch": {"programs", "schedule", "solve", "solver", "transcription", "tasks", "analysis"},
     "tuning": {"solve", "solver"},
     "io": {"rigid_body", "robots", "transcription", "solver", "programs"},
