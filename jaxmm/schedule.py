@@ -152,7 +152,8 @@ def _worker_start(tasks, guesses, options, places, cache, counter):
     with counter.get_lock():
         number = counter.value
         counter.value += 1
-    os.sched_setaffinity(0, {places[number % len(places)]})
+    if hasattr(os, "sched_setaffinity"):  # Linux; elsewhere the system places the workers
+        os.sched_setaffinity(0, {places[number % len(places)]})
     if cache is not None:
         compilation.use_persistent_cache(cache)
     _WORKER.update(tasks=tasks, guesses=guesses, options=options)
