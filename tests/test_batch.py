@@ -123,21 +123,30 @@ def test_the_queue_is_the_single_solves_bit_for_bit_and_compiles_nothing_more(pr
 
 
 def test_the_processes_give_the_single_solves_answers(problems, singles):
-    """Two worker processes, one per core (each pinned: its kernels round as one core does, so
-    to the batch tolerance rather than bit for bit), and the default strategy on this CPU."""
-    if len(schedule.cores()) < 2:
-        pytest.skip("this machine has one core: the default is the queue")
-    assert schedule.default_strategy(None, 3) == "processes"
+    """Two worker processes (each pinned to a core this process may use: its kernels round as
+    one core does, so to the batch tolerance rather than bit for bit), each taking the next
+    instance as it finishes one."""
     ended = []
-    result = batch.solve_batch(*problems, progress=ended.append)
-    assert sorted(r.index for r in ended) == [0, 1, 2] and ended[-1].finished == 3
-    for i, single in enumerate(singles):
-        mine = batch.instance(result, i)
+    results = schedule.run_processes(*problems, solve.DEFAULT_OPTIONS, lambda j, r: ended.append(j), workers=2)
+    assert sorted(ended) == [0, 1, 2]
+    for i, (mine, single) in enumerate(zip(results, singles)):
         assert mine.status is single.status is ip.Status.CONVERGED
         np.testing.assert_allclose(np.asarray(mine.solution.history[:EARLY]),
                                    np.asarray(single.solution.history[:EARLY]), rtol=SAME_PATH)
         assert float(mine.solution.objective) == pytest.approx(float(single.solution.objective), rel=SAME_ANSWER)
         assert analysis.validate(batch.instance(problems[0], i), mine.trajectory).ok
+
+
+def test_the_default_strategy_follows_the_backend_and_the_cores(monkeypatch):
+    """Accelerators vmap slots; a CPU spreads more than one instance over its cores, and runs one
+    instance, or any number on one core, in the calling process."""
+    gpu, cpu = type("Device", (), {"platform": "gpu"})(), type("Device", (), {"platform": "cpu"})()
+    monkeypatch.setattr(schedule, "cores", lambda: [0, 1])
+    assert [schedule.default_strategy(None, 8, [gpu]), schedule.default_strategy(None, 8, [cpu]),
+            schedule.default_strategy(None, 1, [cpu])] == ["slots", "processes", "queue"]
+    monkeypatch.setattr(schedule, "cores", lambda: [0])
+    assert schedule.default_strategy(None, 8, [cpu]) == "queue"
+    assert schedule.default_strategy("slots", 8, [cpu]) == "slots"
 
 
 def test_the_slots_give_the_single_solves_answers(problems, slotted, singles):
