@@ -160,14 +160,10 @@ def _worker_start(tasks, guesses, options, places, cache, counter):
 
 
 def _worker_solve(j):
-    """(j, instance j's ``TaskSolution`` with NumPy leaves), solved in this worker."""
+    """(j, instance j's ``TaskSolution`` with NumPy leaves), solved in this worker by the single
+    solve (``programs.compile_solve``: compiled at the first instance, reused after)."""
     tasks, guesses, options = _WORKER["tasks"], _WORKER["guesses"], _WORKER["options"]
-    task, guess = _take(tasks, j), _take(guesses, j)
-    started, advanced, finished = programs.compiled_programs(task, guess, options, None, None)
-    iterating = ip.iteration_options(options)
-    state = started(task, guess, options, None, None)
-    result = finished(task, advanced(task, state, iterating, iterating.max_iterations), int(ip.Status.MAX_ITERATIONS))
-    return j, jax.device_get(result)
+    return j, jax.device_get(programs.compile_solve(_take(tasks, j), _take(guesses, j), options)())
 
 
 @contextlib.contextmanager
