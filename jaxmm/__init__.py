@@ -17,7 +17,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from jaxmm import compilation  # noqa: E402
-from jaxmm.analysis import ValidationReport, validate  # noqa: E402
+from jaxmm.analysis import TorqueReport, ValidationReport, joint_torques, validate  # noqa: E402
 from jaxmm.batch import sample_guesses, solve_batch, summarise  # noqa: E402
 from jaxmm.rigid_body import so3  # noqa: E402
 from jaxmm.rigid_body.centroidal import (  # noqa: E402
@@ -34,6 +34,7 @@ from jaxmm.rigid_body.configuration import (  # noqa: E402
     neutral_configuration,
     split_configuration,
 )
+from jaxmm.rigid_body.dynamics import bias_forces, inverse_dynamics, mass_matrix  # noqa: E402
 from jaxmm.rigid_body.kinematics import body_poses, frame_jacobian, frame_pose, frame_poses  # noqa: E402
 from jaxmm.rigid_body.model import Model, Topology, UnknownNameError  # noqa: E402
 from jaxmm.rigid_body.urdf import URDFError, model_from_urdf, read_urdf  # noqa: E402
@@ -51,10 +52,12 @@ __all__ = [
     "SCENARIOS",
     "TaskSolution",
     "Topology",
+    "TorqueReport",
     "URDFError",
     "UnknownNameError",
     "ValidationReport",
     "assemble_urdf",
+    "bias_forces",
     "body_poses",
     "build_task",
     "centroidal_momentum",
@@ -70,9 +73,12 @@ __all__ = [
     "gradient",
     "initial_guess",
     "integrate_configuration",
+    "joint_torques",
+    "inverse_dynamics",
     "load_ironcub",
     "load_robot",
     "make_configuration",
+    "mass_matrix",
     "model_from_urdf",
     "neutral_configuration",
     "read_urdf",

@@ -7,8 +7,8 @@
     jaxmm robot [--urdf PATH]                         a robot summary
 
 ``solve`` writes to its output directory the solution (``solution.npz``, see ``jaxmm.io``), the
-validation report (``validation.txt``), a summary (``summary.json``), the figures and an
-animation. Progress (compiling, then every iteration) is shown on a terminal and stays quiet when
+validation report (``validation.txt``), a summary (``summary.json``, with the joint torques the
+plan needs against the motors' limits), the figures and an animation. Progress (compiling, then every iteration) is shown on a terminal and stays quiet when
 the output is piped or ``CI`` is set. With ``--time-budget S``, the end of S seconds of iterating
 or a Ctrl-C stops the solve with its last iterate, which is written like any other (status
 ``INTERRUPTED`` or ``TIME_LIMIT`` in the summary; exit code 1); a second Ctrl-C aborts.
@@ -156,6 +156,19 @@ def _solve(task, args, progress):
     return result, compiling.seconds, time.perf_counter() - start
 
 
+def _torque_summary(torques):
+    """The joint-torque numbers of a ``TorqueReport`` for summary.json."""
+    import numpy as np
+
+    name, knot, torque, limit = torques.worst
+    return dict(
+        largest_load=float(torques.load.max()), worst_joint=name, worst_knot=knot, worst_torque=torque, worst_limit=limit,
+        saturated={joint: dict(knots=list(knots), largest_load=load) for joint, (knots, load) in torques.saturated.items()},
+        base_force_max=float(np.linalg.norm(torques.base_force, axis=1).max()),
+        base_torque_max=float(np.linalg.norm(torques.base_torque, axis=1).max()),
+    )
+
+
 def _solve_command(args):
     from jaxmm import analysis, io
 
@@ -172,6 +185,7 @@ def _solve_command(args):
         f"objective {float(solution.objective):.6e}, max violation {float(solution.violation):.1e}"
     )
     print(f"  validate: {'ok' if report.ok else 'FAILED: ' + ', '.join(report.failed)}")
+    print(f"  joint torques: {report.torques}".replace("\n", "\n  "))
     written = [io.save(out / "solution.npz", task, result)]
     (out / "validation.txt").write_text(str(report) + "\n")
     summary = dict(
@@ -181,6 +195,7 @@ def _solve_command(args):
         violation_per_family={k: float(v) for k, v in result.violation_per_family.items()},
         validate_ok=report.ok, failed_checks=list(report.failed),
         flight_knots=list(report.flight_knots), total_time=float(result.trajectory.total_time),
+        torques=_torque_summary(report.torques),
     )
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     written += [out / "validation.txt", out / "summary.json"]

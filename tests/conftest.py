@@ -104,6 +104,37 @@ class PinocchioTwin:
         v_pin[self.v_index] = nu[6:]
         return v_pin
 
+    def velocity_map(self, q):
+        """T (nv_pin, 6 + n) with ν_pin = T ν: the base's linear and angular velocity in the base
+        frame (Pinocchio's free flyer), the joints in Pinocchio's order. Generalised forces map
+        back as τ = Tᵀ τ_pin, the mass matrix as M = Tᵀ M_pin T."""
+        R = np.asarray(so3.quaternion_to_rotation(np.asarray(q)[3:7]))
+        T = np.zeros((self.model.nv, 6 + len(self.v_index)))
+        T[:3, :3] = T[3:6, 3:6] = R.T
+        T[self.v_index, 6 + np.arange(len(self.v_index))] = 1.0
+        return T
+
+    def acceleration(self, q, nu, nu_dot):
+        """a_pin = d/dt (T ν) = T ν̇ + Ṫ ν, with Ṙᵀ = −Rᵀ S(ω): the linear part gains −Rᵀ (ω × ṗ)
+        and the angular part nothing (Rᵀ S(ω) ω = 0)."""
+        nu = np.asarray(nu)
+        a_pin = self.velocity_map(q) @ np.asarray(nu_dot)
+        a_pin[:3] -= self.velocity_map(q)[:3, :3] @ np.cross(nu[3:6], nu[:3])
+        return a_pin
+
+    def external_forces(self, q, frames, forces):
+        """Pinocchio's fext for pure world forces (k, 3) at the origins of frames (names): per
+        joint, the sum of the forces' spatial forces in the joint's local frame."""
+        pin = self.pin
+        pin.framesForwardKinematics(self.model, self.data, self.configuration(q))
+        fext = [pin.Force.Zero() for _ in range(self.model.njoints)]
+        for name, force in zip(frames, np.asarray(forces)):
+            fid = self.frame_id(name)
+            joint = self.model.frames[fid].parentJoint
+            world = pin.Force(force, np.cross(self.data.oMf[fid].translation, force))
+            fext[joint] = fext[joint] + self.data.oMi[joint].actInv(world)
+        return fext
+
     def frame_id(self, name):
         return self.model.getFrameId(name, self.pin.BODY)
 

@@ -139,3 +139,50 @@ def test_contact_height_and_flight_force_decide_their_verdict():
     assert not in_air_fails(contact_height=1.01 * height) and in_air_fails(contact_height=0.99 * height)
     assert in_air_fails(contact_height=0.99 * height, flight_force=0.99 * force)
     assert not in_air_fails(contact_height=0.99 * height, flight_force=1.01 * force)
+
+
+def test_torques_of_a_stance_balance_gravity_through_the_jacobians():
+    """Standing still, the base residual vanishes (the contact forces balance gravity about the
+    CoM) and the joint torques equal the static ones from the CoM and corner Jacobians alone,
+    τ_s = −m J_com,sᵀ g − Σ_i J_i,sᵀ f_i, an identity independent of the recursive algorithm."""
+    task, trajectory = _standing_still()
+    robot, q = task.robot, np.asarray(trajectory.knots.configuration[0])
+    torques = analysis.joint_torques(task, trajectory)
+    assert torques.torques.shape == (task.n_knots, robot.model.n_joints)
+    assert np.abs(torques.base_force).max() < 1e-9 and np.abs(torques.base_torque).max() < 1e-9
+    mass = float(jaxmm.total_mass(robot.model))
+    static = -mass * np.asarray(jaxmm.com_jacobian(robot.model, q))[:, 6:].T @ np.asarray(task.params.gravity)
+    for frame, force in zip(robot.contact_frames, np.asarray(trajectory.knots.contact_forces[0])):
+        static -= np.asarray(jaxmm.frame_jacobian(robot.model, q, frame))[:3, 6:].T @ force
+    assert np.abs(torques.torques - static).max() < 1e-9 * np.abs(static).max()
+    assert np.abs(static).max() > 1.0  # the legs carry the robot: the identity is not 0 = 0
+
+
+def test_effort_limits_are_reported_and_enforced_on_request():
+    """The stance needs torques within iRonCub's motors; with the limits cut below the largest
+    load the check turns over: reported without deciding ``ok`` by default, failed with
+    ``effort_limits=True``, the worst joint and knot named."""
+    task, trajectory = _standing_still()
+    report = analysis.validate(task, trajectory, effort_limits=True)
+    assert report.ok, str(report)
+    name, knot, torque, limit = report.torques.worst
+    assert abs(torque) <= limit
+    model = task.robot.model
+    weak = dataclasses.replace(task, robot=dataclasses.replace(task.robot, model=dataclasses.replace(
+        model, effort_limits=model.effort_limits.at[model.joint_index(name)].set(0.5 * abs(torque)))))
+    lenient = analysis.validate(weak, trajectory)
+    assert lenient.ok and "over (not enforced)" in str(lenient)
+    strict = analysis.validate(weak, trajectory, effort_limits=True)
+    assert strict.failed == ("joint torques within effort limits",)
+    assert f"{name} at knot" in str(strict) and strict.torques.saturated[name][1] == pytest.approx(2.0)
+
+
+def test_knot_accelerations_follow_the_backward_euler_rule():
+    """ν̇[k] = (ν[k] − ν[k−1]) / Δt, and knot 0 takes knot 1's."""
+    task, trajectory = _standing_still()
+    ramp = np.arange(task.n_knots, dtype=float)[:, None] * np.linspace(0.1, 1.0, task.robot.model.n_joints)
+    moving = Trajectory(dataclasses.replace(trajectory.knots, joint_velocities=jnp.asarray(ramp ** 2)), trajectory.total_time)
+    dt = float(trajectory.total_time) / task.n_intervals
+    rates = np.asarray(analysis.knot_accelerations(task, moving))[:, 6:]
+    expected = np.diff(ramp ** 2, axis=0) / dt
+    assert np.allclose(rates[1:], expected, rtol=1e-12) and np.allclose(rates[0], expected[0], rtol=1e-12)

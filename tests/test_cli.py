@@ -52,8 +52,11 @@ def test_solve_writes_solution_report_figures_and_animation(tmp_path, capsys):
     assert task.n_intervals == 14 and result.status.name == "CONVERGED"
     assert float(task.params.min_dt) == 0.25 and float(task.params.max_dt) == 0.5  # the published horizon kept
     assert "re-simulated CoM" in (out / "validation.txt").read_text()
+    torques = summary["torques"]  # the joint torques the plan needs, named against the URDF's limits
+    assert torques["worst_joint"] in task.robot.model.joint_names and torques["largest_load"] > 0
+    assert torques["base_force_max"] >= 0 and "joint torques: largest |τ|/τ_max" in printed
     pngs = sorted(p.name for p in out.glob("*.png"))
-    assert len(pngs) == 7 and all((out / p).stat().st_size > 10_000 for p in pngs), pngs
+    assert len(pngs) == 8 and all((out / p).stat().st_size > 10_000 for p in pngs), pngs
     with PIL.Image.open(out / "motion.gif") as gif:
         assert gif.n_frames > 30  # 8 fps over the 3.5–7 s horizon
 

@@ -176,6 +176,26 @@ def test_validation_figure(task, trajectory):
     assert "re-simulated CoM" in labels and "FAILED" in ax.get_title()  # a guess is no solution
 
 
+def test_torques_figure(task, trajectory):
+    """A heat map of |τ|/τ_max (joints × knots) with a contour where a limit is crossed, and the
+    base residual over time. With every limit at the joint's median |τ|, each joint crosses it."""
+    from jaxmm.analysis import torques
+
+    report = torques.joint_torques(task, trajectory)
+    fig = plots.plot_torques(task, trajectory)
+    load_ax, base_ax, _ = fig.axes  # the colour bar comes last
+    assert load_ax.images[0].get_array().shape == (len(report.joint_names), task.n_knots)
+    assert [t.get_text() for t in load_ax.get_yticklabels()] == list(report.joint_names)
+    assert report.worst[0] in load_ax.get_title()
+    assert bool(load_ax.collections) == bool(np.any(report.load > 1.0))  # a contour only where a limit is crossed
+    assert [len(line.get_xdata()) for line in base_ax.get_lines()] == [task.n_knots] * 2
+    model = task.robot.model
+    median = jnp.asarray(np.median(np.abs(report.torques), axis=0))
+    tight = dataclasses.replace(task, robot=dataclasses.replace(task.robot, model=dataclasses.replace(
+        model, effort_limits=median)))
+    assert plots.plot_torques(tight, trajectory).axes[0].collections  # the contour of |τ| = τ_max
+
+
 def test_bad_trajectory_is_a_value_error(task, guess):
     short = tasks.initial_guess(tasks.scenario("take_off", knots=5))
     with pytest.raises(ValueError, match="15 knots"):
@@ -186,7 +206,8 @@ def test_bad_trajectory_is_a_value_error(task, guess):
 
 def test_save_figures_writes_pngs(task, result, tmp_path):
     paths = plots.save_figures(task, result, tmp_path / "figures", dpi=40, style="stick")
-    assert set(paths) == {"forces", "com", "contact_schedule", "joints", "convergence", "validation", "snapshots"}
+    assert set(paths) == {"forces", "com", "contact_schedule", "joints", "torques", "convergence", "validation",
+                          "snapshots"}
     for path in paths.values():
         assert path.stat().st_size > 1000
         with Image.open(path) as image:

@@ -192,3 +192,78 @@ def test_jit_with_static_model_fields(model, configurations):
     traces.clear()
     assert np.allclose(compiled(heavier, configurations[0]), 2 * A, atol=1e-12)
     assert not traces
+
+
+def _momentum_rate(model, q, nu, nu_dot):
+    """ḣ = d/dt (J_CMM(q) ν) along q̇(q, ν) and ν̇, by forward-mode autodiff (eq. 4)."""
+    cmm = functools.partial(jaxmm.centroidal_momentum_matrix, model)
+    q_dot = jaxmm.configuration_derivative(q, nu)
+    return jax.jvp(lambda q, nu: cmm(q) @ nu, (q, nu), (q_dot, nu_dot))[1]
+
+
+def test_inverse_dynamics_base_wrench_is_the_momentum_rate(model, configurations):
+    """Newton and Euler for the whole robot: without external forces, the base wrench of the
+    recursive Newton–Euler algorithm, moved from the base origin to the CoM, equals the rate of
+    the centroidal momentum minus gravity's force (eq. 13 with no contact or thrust)."""
+    rng = np.random.default_rng(11)
+    m = float(jaxmm.total_mass(model))
+    gravity = np.array([0.0, 0.0, -9.81])
+    inverse = jax.jit(functools.partial(jaxmm.inverse_dynamics, model))
+    for q in configurations:
+        nu, nu_dot = rng.normal(size=(2, model.nv))
+        tau = np.asarray(inverse(q, nu, nu_dot))
+        x = np.asarray(jaxmm.com_position(model, q))
+        force, torque_at_com = tau[:3], tau[3:6] + np.cross(q[:3] - x, tau[:3])
+        rate = np.asarray(_momentum_rate(model, q, nu, nu_dot))
+        assert np.allclose(force, rate[:3] - m * gravity, rtol=0, atol=1e-10 * max(1.0, np.abs(rate).max()))
+        assert np.allclose(torque_at_com, rate[3:], rtol=0, atol=1e-10 * max(1.0, np.abs(rate).max()))
+
+
+def test_mass_matrix_identities(model, configurations):
+    """M is symmetric positive definite; its base rows times ν are the momentum about the base
+    origin, (m ẋ, h_ω + (x − p) × m ẋ); τ = M ν̇ + h(q, ν) (the bias forces)."""
+    rng = np.random.default_rng(12)
+    mass = jax.jit(functools.partial(jaxmm.mass_matrix, model))
+    for q in configurations[:4]:
+        M = np.asarray(mass(q))
+        assert np.abs(M - M.T).max() <= 1e-12 * np.abs(M).max()
+        assert np.linalg.eigvalsh(M).min() > 0
+        nu, nu_dot = rng.normal(size=(2, model.nv))
+        h = np.asarray(jaxmm.centroidal_momentum(model, q, nu))
+        x = np.asarray(jaxmm.com_position(model, q))
+        assert np.allclose(M[:3] @ nu, h[:3], rtol=0, atol=1e-12)
+        assert np.allclose(M[3:6] @ nu, h[3:] + np.cross(x - q[:3], h[:3]), rtol=0, atol=1e-11)
+        tau = np.asarray(jaxmm.inverse_dynamics(model, q, nu, nu_dot))
+        assert np.allclose(tau, M @ nu_dot + np.asarray(jaxmm.bias_forces(model, q, nu)), rtol=0, atol=1e-10)
+
+
+def test_inverse_dynamics_external_force_enters_through_the_jacobian(model, configurations):
+    """A pure force F at a frame subtracts J_linearᵀ F from τ (the frame's mixed Jacobian)."""
+    rng = np.random.default_rng(13)
+    for q in configurations[:3]:
+        nu, nu_dot = rng.normal(size=(2, model.nv))
+        force = rng.normal(scale=30.0, size=(1, 3))
+        free = jaxmm.inverse_dynamics(model, q, nu, nu_dot)
+        pushed = jaxmm.inverse_dynamics(model, q, nu, nu_dot, force, ("r_sole_2",))
+        J = jaxmm.frame_jacobian(model, q, "r_sole_2")
+        assert np.allclose(free - pushed, J[:3].T @ force[0], rtol=0, atol=1e-10)
+
+
+def test_inverse_dynamics_vmap_and_gradients(model, configurations):
+    """vmap equals a loop; derivatives in q, ν, ν̇ and the forces match finite differences."""
+    rng = np.random.default_rng(14)
+    frames = ("l_sole_1", "chest_l_jet_turbine")
+    Q = configurations[:3]
+    V, A = rng.normal(size=(2, 3, model.nv))
+    F = rng.normal(scale=20.0, size=(3, 2, 3))
+    inverse = lambda q, v, a, f: jaxmm.inverse_dynamics(model, q, v, a, f, frames)  # noqa: E731
+    batched = np.asarray(jax.jit(jax.vmap(inverse))(Q, V, A, F))
+    looped = np.stack([np.asarray(inverse(*args)) for args in zip(Q, V, A, F)])
+    assert np.allclose(batched, looped, rtol=0, atol=1e-12)
+    check_grads(inverse, (Q[0], V[0], A[0], F[0]), order=1, modes=("fwd", "rev"), atol=1e-5, rtol=1e-5)
+
+
+def test_inverse_dynamics_rejects_forces_of_the_wrong_shape(model, configurations):
+    with pytest.raises(ValueError, match=r"forces must have shape \(2, 3\)"):
+        jaxmm.inverse_dynamics(model, configurations[0], np.zeros(model.nv), np.zeros(model.nv), np.zeros((3, 3)),
+                               ("l_sole_1", "head"))

@@ -12,8 +12,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from jaxmm.analysis import validation
-from jaxmm.analysis import animation
+from jaxmm.analysis import animation, torques, validation
 from jaxmm.rigid_body.centroidal import total_mass
 from jaxmm.solver import interior_point as ip
 
@@ -230,6 +229,38 @@ def plot_joints(task, trajectory, *, fig=None, columns=6, contact_height=CONTACT
     return fig
 
 
+def plot_torques(task, trajectory, *, fig=None, contact_height=CONTACT_HEIGHT):
+    """The joint torques the plan needs (``torques.joint_torques``): |τ|/τ_max of every optimised
+    joint against time (colour saturating at 1, where the motor's URDF effort limit is reached;
+    black contours where it is exceeded), and the base residual, the unbalanced force [N] and
+    torque about the CoM [N m] (zero for a plan consistent with the full dynamics), flight
+    phases shaded. Returns the Figure."""
+    validation.check_trajectory(task, trajectory)
+    report = torques.joint_torques(task, trajectory)
+    time = report.times
+    fig = _figure(fig, figsize=(9, 0.22 * len(report.joint_names) + 3.6), layout="constrained")
+    load_ax, base_ax = fig.subplots(2, 1, sharex=True, height_ratios=(len(report.joint_names), 8))
+    half = 0.5 * (time[1] - time[0])
+    image = load_ax.imshow(report.load.T, aspect="auto", origin="upper", cmap="viridis", vmin=0.0, vmax=1.0,
+                           extent=(time[0] - half, time[-1] + half, len(report.joint_names) - 0.5, -0.5),
+                           interpolation="nearest")
+    if np.any(report.load > 1.0):
+        load_ax.contour(time, np.arange(len(report.joint_names)), report.load.T, levels=[1.0], colors="k", linewidths=1)
+    load_ax.set_yticks(np.arange(len(report.joint_names)), report.joint_names, fontsize="x-small")
+    fig.colorbar(image, ax=load_ax, label="|τ| / τ_max", extend="max")
+    name, knot, torque, limit = report.worst
+    load_ax.set_title(f"{task.name}: joint torques against the effort limits — largest {np.max(report.load):.2g} "
+                      f"({name}, {torque:.3g} N m at t = {time[knot]:.2f} s, limit {limit:.3g} N m)", fontsize="medium")
+    base_ax.plot(time, np.linalg.norm(report.base_force, axis=1), color="tab:blue", label="|force| [N]")
+    base_ax.plot(time, np.linalg.norm(report.base_torque, axis=1), color="tab:purple", label="|torque about CoM| [N m]")
+    shade_flight(base_ax, flight_intervals(trajectory, contact_height))
+    base_ax.set_ylabel("base residual")
+    base_ax.set_xlabel("time [s]")
+    base_ax.legend(fontsize="small", loc="upper right")
+    base_ax.grid(alpha=0.3)
+    return fig
+
+
 _HISTORY_LABELS = dict(
     objective="objective", violation="constraint violation", stationarity="stationarity (scaled)",
     barrier="barrier parameter μ", step_length="step length α", regularisation="regularisation δ_w",
@@ -295,14 +326,15 @@ def plot_convergence(result, *, fig=None, tolerance=ip.Options().tolerance):
 
 def plot_validation(task, trajectory, *, ax=None):
     """The checks of ``validation.validate`` as bars of value / limit on a log axis (≤ 1 passes:
-    green; red fails), each labelled with its value (the check's units). Returns the Figure."""
+    green; red fails; orange: over the limit of a check that is reported, not enforced), each
+    labelled with its value (the check's units). Returns the Figure."""
     validation.check_trajectory(task, trajectory)
     report = validation.validate(task, trajectory)
     fig = Figure(figsize=(8, 0.3 * len(report.checks) + 1.2), layout="constrained") if ax is None else ax.figure
     ax = fig.add_subplot() if ax is None else ax
     floor = 1e-12  # exactly satisfied checks show at the floor of the log axis
     ratios = np.maximum([check.value / check.limit for check in report.checks], floor)
-    colours = ["tab:green" if check.passed else "tab:red" for check in report.checks]
+    colours = ["tab:green" if check.passed else "tab:red" if check.enforced else "tab:orange" for check in report.checks]
     bars = ax.barh([check.name for check in report.checks], ratios, color=colours)
     ax.bar_label(bars, [f"{check.value:.2g}" for check in report.checks], padding=3, fontsize="x-small")
     ax.axvline(1.0, color="k", lw=1)
@@ -320,7 +352,7 @@ def plot_validation(task, trajectory, *, ax=None):
 
 def save_figures(task, result, directory, *, dpi=120, snapshots=True, style="mesh"):
     """Write every figure of a ``TaskSolution`` as PNG into directory (created if needed):
-    forces, com, contact_schedule, joints, convergence, validation and, with snapshots, the
+    forces, com, contact_schedule, joints, torques, convergence, validation and, with snapshots, the
     snapshot strip of ``animation.plot_snapshots`` (drawn in style). Returns {name: path}."""
     directory = pathlib.Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -330,6 +362,7 @@ def save_figures(task, result, directory, *, dpi=120, snapshots=True, style="mes
         com=lambda: plot_com(task, trajectory),
         contact_schedule=lambda: plot_contact_schedule(task, trajectory),
         joints=lambda: plot_joints(task, trajectory),
+        torques=lambda: plot_torques(task, trajectory),
         convergence=lambda: plot_convergence(result),
         validation=lambda: plot_validation(task, trajectory),
     )

@@ -17,7 +17,7 @@ def total_mass(model):
     return jnp.sum(model.inertial_mass)
 
 
-def _inertials_world(model, R_body, p_body):
+def inertials_world(model, R_body, p_body):
     """World CoM (ne, 3) and world-aligned inertia about that CoM (ne, 3, 3) of each element."""
     bodies = np.asarray(model.topology.inertial_body, int)
     R = R_body[bodies]
@@ -29,7 +29,7 @@ def _inertials_world(model, R_body, p_body):
 def com_position(model, q):
     """Centre of mass x(q) of eq. (15), world frame [m]: (7 + n,) → (3,)."""
     R_body, p_body = body_poses(model, q)
-    com, _ = _inertials_world(model, R_body, p_body)
+    com, _ = inertials_world(model, R_body, p_body)
     return model.inertial_mass @ com / total_mass(model)
 
 
@@ -47,7 +47,7 @@ def centroidal_momentum_matrix(model, q):
 
 
 def _cmm_from_poses(model, q, R_body, p_body):
-    com, inertia = _inertials_world(model, R_body, p_body)
+    com, inertia = inertials_world(model, R_body, p_body)
     mass = model.inertial_mass
     m = jnp.sum(mass)
     x = mass @ com / m
@@ -83,7 +83,7 @@ def _cmm_from_poses(model, q, R_body, p_body):
 
 def _bundle(model, q, frames):
     R_body, p_body = body_poses(model, q)
-    com, _ = _inertials_world(model, R_body, p_body)
+    com, _ = inertials_world(model, R_body, p_body)
     bodies = np.asarray(model.topology.frame_body, int)[list(frames)]
     indices = np.asarray(frames, int)
     positions = p_body[bodies] + jnp.einsum("fij,fj->fi", R_body[bodies], model.frame_translation[indices])

@@ -111,7 +111,9 @@ class Model:
     inertial_mass: (ne,) [kg]; inertial_com: (ne, 3) [m] and inertial_inertia: (ne, 3, 3)
         [kg m²] about the element's CoM, both in its body's frame.
     position_limits: (n, 2) lower and upper limit of each optimised joint (URDF limits).
-    velocity_limits: (n,) URDF velocity limits.
+    velocity_limits: (n,) URDF velocity limits [rad/s or m/s].
+    effort_limits: (n,) URDF effort limits: the largest |torque| [N m] (force [N] for prismatic
+        joints) each optimised joint's motor can exert; inf where the URDF gives none.
     locked_positions: (n_locked,) values of the locked joints.
     topology: static structure (``Topology``).
     """
@@ -126,6 +128,7 @@ class Model:
     inertial_inertia: jax.Array
     position_limits: jax.Array
     velocity_limits: jax.Array
+    effort_limits: jax.Array
     locked_positions: jax.Array
     topology: Topology = dataclasses.field(metadata=dict(static=True))
 

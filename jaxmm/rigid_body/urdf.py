@@ -174,7 +174,8 @@ def _add_joint(tree, joint, parent, T_joint):
     lower = -np.inf if joint.type == "continuous" or limit is None or limit.lower is None else limit.lower
     upper = np.inf if joint.type == "continuous" or limit is None or limit.upper is None else limit.upper
     velocity = np.inf if limit is None or limit.velocity is None else limit.velocity
-    tree["joint_limits"].append((lower, upper, velocity))
+    effort = np.inf if limit is None or limit.effort is None else limit.effort
+    tree["joint_limits"].append((lower, upper, velocity, effort))
 
 
 def _inertials(robot, link_body):
@@ -243,7 +244,7 @@ def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=T
         inertial_body=tuple(inertial_body),
         inertial_names=tuple(inertial_names),
     )
-    limits = np.asarray(joint_limits, float).reshape(-1, 3)
+    limits = np.asarray(joint_limits, float).reshape(-1, 4)
     array = lambda x, shape: jnp.asarray(np.asarray(x, float).reshape(shape))  # noqa: E731
     nj = len(joint_names)
     return Model(
@@ -257,6 +258,7 @@ def model_from_urdf(source, joints=None, locked=None, name=None, check_inertia=T
         inertial_inertia=array(inertias, (-1, 3, 3)),
         position_limits=array(limits[list(optimised), :2], (-1, 2)),
         velocity_limits=array(limits[list(optimised), 2], (-1,)),
+        effort_limits=array(limits[list(optimised), 3], (-1,)),
         locked_positions=array([locked.get(joint_names[i], 0.0) for i in locked_idx], (-1,)),
         topology=topology,
     )
