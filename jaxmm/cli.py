@@ -1,17 +1,20 @@
 """The ``jaxmm`` command line: solve the published scenarios, compare with IPOPT, describe robots.
 
     jaxmm scenarios                                   the four scenarios and their settings
-    jaxmm solve take-off [--knots N] [--target x y z] [--urdf PATH] [--out DIR] [--time-budget S]
+    jaxmm solve take-off [--knots N] [--target x y z] [--urdf PATH] [--torque-limits] [--out DIR]
+                         [--time-budget S]
     jaxmm multistart take-off --guesses B [--seed S]  B sampled guesses, ranked; the best written
     jaxmm compare take-off [--knots N]                ours and the CasADi/IPOPT reference
     jaxmm robot [--urdf PATH]                         a robot summary
 
 ``solve`` writes to its output directory the solution (``solution.npz``, see ``jaxmm.io``), the
 validation report (``validation.txt``), a summary (``summary.json``, with the joint torques the
-plan needs against the motors' limits), the figures and an animation. Progress (compiling, then every iteration) is shown on a terminal and stays quiet when
-the output is piped or ``CI`` is set. With ``--time-budget S``, the end of S seconds of iterating
-or a Ctrl-C stops the solve with its last iterate, which is written like any other (status
-``INTERRUPTED`` or ``TIME_LIMIT`` in the summary; exit code 1); a second Ctrl-C aborts.
+plan needs against the motors' limits), the figures and an animation. Progress (compiling, then
+every iteration) is shown on a terminal and stays quiet when the output is piped or ``CI`` is set.
+With ``--time-budget S``, the end of S seconds of iterating or a Ctrl-C stops the solve with its
+last iterate, which is written like any other (status ``INTERRUPTED`` or ``TIME_LIMIT`` in the
+summary; exit code 1); a second Ctrl-C aborts. ``--torque-limits`` adds the joint-torque bounds
+(``Task.joint_torque_limits``), which the paper's problem does not have.
 
 Compiled programs are kept on disk (``jaxmm.compilation.use_persistent_cache``; ``--cache-dir``,
 default ``~/.cache/jaxmm/xla``, or ``$JAX_COMPILATION_CACHE_DIR`` when set; ``--no-cache``): the
@@ -124,6 +127,8 @@ def _task(args):
     from jaxmm import tasks
 
     overrides = {} if args.target is None else dict(final_com=args.target)
+    if getattr(args, "torque_limits", False):
+        overrides["joint_torque_limits"] = True
     robot = None if args.urdf is None else _ironcub_like(args.urdf)
     return tasks.scenario(args.scenario, robot=robot, knots=args.knots, keep_horizon=True, **overrides)
 
@@ -318,6 +323,8 @@ def _scenario_arguments(parser):
     parser.add_argument("--knots", type=int, help="N (default: the published one; the horizon is kept)")
     parser.add_argument("--target", type=float, nargs=3, metavar=("X", "Y", "Z"), help="final CoM [m]")
     parser.add_argument("--urdf", help="another URDF of iRonCub (same joint, jet and contact frame names)")
+    parser.add_argument("--torque-limits", action="store_true",
+                        help="bound every joint torque by the URDF's effort limit (not in the paper's problem)")
     parser.add_argument("--max-iterations", type=int, help="solver iteration limit (default 3000)")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
     parser.add_argument("--ipopt-slacks", action="store_true",

@@ -161,6 +161,7 @@ def save(path, task, result):
             integration=task.integration,
             slack_penalty=task.slack_penalty,
             upper_body_joints=list(task.upper_body_joints),
+            joint_torque_limits=task.joint_torque_limits,
             params=_encode(task.params, "task.params", arrays),
             weights=_encode(task.weights, "task.weights", arrays),
         ),
@@ -252,6 +253,7 @@ def load(path, robot=None):
             integration=spec["integration"],
             slack_penalty=spec["slack_penalty"],
             upper_body_joints=tuple(spec["upper_body_joints"]),
+            joint_torque_limits=bool(spec.get("joint_torque_limits", False)),  # absent before the option existed
         )
         trajectory = _decode(header["trajectory"], arrays)
         solution = _decode(header["solution"], arrays)

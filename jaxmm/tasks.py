@@ -128,6 +128,7 @@ def build_task(
     integration="trapezoidal",
     slack_penalty="linear",
     upper_body_joints=(),
+    joint_torque_limits=False,
 ):
     """A ``Task`` for any ``Robot`` (its jet and contact frames are the robot's).
 
@@ -135,8 +136,9 @@ def build_task(
     ``Weights``. jet_coefficients (nj, 10) and max_thrust (nj,) are required when the robot
     has jets. joint_limits (n, 2) [rad] default to the URDF limits. upper_body_joints: names.
     complementarity_tolerance, slack_limit: the complementarity rows' σ and the slacks' bound
-    (``TaskParams``; the defaults are the published relaxation). Raises ValueError naming the
-    problem for inconsistent input.
+    (``TaskParams``; the defaults are the published relaxation). joint_torque_limits: bound every
+    joint torque by the URDF's effort limit (``Task.joint_torque_limits``; off in the paper's NLP).
+    Raises ValueError naming the problem for inconsistent input.
     """
     model = robot.model
     nj = len(robot.jet_frames)
@@ -198,6 +200,7 @@ def build_task(
         integration=integration,
         slack_penalty=slack_penalty,
         upper_body_joints=tuple(model.joint_index(j) for j in upper_body_joints),
+        joint_torque_limits=bool(joint_torque_limits),
     )
 
 

@@ -163,3 +163,20 @@ def test_save_argument_errors(saved, tmp_path):
     with pytest.raises(TypeError, match="needs a Task and a TaskSolution"):
         io.save(tmp_path / "x.npz", result, task)
     assert not list(tmp_path.iterdir())
+
+
+def test_the_joint_torque_option_round_trips_and_older_files_have_it_off(saved, tmp_path):
+    """``Task.joint_torque_limits`` is saved and loaded; a file written before the option existed
+    solved the paper's NLP, without it."""
+    path, task, result = saved
+    bounded = dataclasses.replace(task, joint_torque_limits=True)
+    loaded, _ = io.load(io.save(tmp_path / "bounded.npz", bounded, result))
+    assert loaded.joint_torque_limits and not io.load(path)[0].joint_torque_limits
+
+    def without_the_option(arrays):
+        content = json.loads(str(arrays["__header__"]))
+        del content["task"]["joint_torque_limits"]
+        arrays["__header__"] = np.array(json.dumps(content))
+
+    older, _ = io.load(_rewrite(tmp_path / "bounded.npz", tmp_path / "older.npz", without_the_option))
+    assert older.joint_torque_limits is False

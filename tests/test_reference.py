@@ -123,8 +123,9 @@ def assert_parity(worst):
         ("take_off", 20, {}),
         ("take_off", 5, dict(integration="backward_euler", slack_penalty="squared")),
         ("jumping", 5, {}),
+        ("take_off", 5, dict(joint_torque_limits=True)),
     ],
-    ids=["take_off", "take_off-backward_euler-squared_slack", "jumping-no_jets"],
+    ids=["take_off", "take_off-backward_euler-squared_slack", "jumping-no_jets", "take_off-joint_torque"],
 )
 def test_parity_with_reference(build, name, count, options):
     task, nlp = build(name, **options)
@@ -156,11 +157,14 @@ def test_reference_is_smooth_at_the_initial_guess(build):
 
 
 @pytest.mark.parametrize("name, options", [("take_off", {}), ("take_off_and_landing", {}),
-                                           ("take_off", dict(complementarity_tolerance=1e-6, slack_limit=0.0))],
-                         ids=["take_off", "take_off_and_landing", "take_off-exact_complementarity"])
+                                           ("take_off", dict(complementarity_tolerance=1e-6, slack_limit=0.0)),
+                                           ("take_off", dict(joint_torque_limits=True))],
+                         ids=["take_off", "take_off_and_landing", "take_off-exact_complementarity",
+                              "take_off-joint_torque"])
 def test_bounds_match_jax(build, name, options):
     """Inequality bounds and variable boxes (boundary conditions, with and without a
-    mid-horizon height; the published complementarity and Scholtes' without slacks) agree."""
+    mid-horizon height; the published complementarity and Scholtes' without slacks; the joint
+    torques' effort limits) agree."""
     task, nlp = build(name, **options)
     ours = constraints.inequality_bounds(task)
     for name, (lower, upper) in nlp.inequality_bounds().items():

@@ -428,3 +428,52 @@ def test_resample_interpolates_knots_in_time_and_keeps_unit_quaternions():
 def test_resample_bad_input(call, error, message):
     with pytest.raises(error, match=message):
         call(initial_guess(scenario("take_off", knots=4, keep_horizon=True)))
+
+
+def test_joint_torque_family_rows_supports_and_curvature():
+    """With ``joint_torque_limits``, the transition inequalities end with the joint torques at
+    knot k+1 (the same as ``analysis.joint_torques``' at knots 1..N), bounded by the URDF's effort
+    limits; their Jacobian stays inside the declared supports, and the transcription's own
+    Hessian of y·h over its curvature columns equals ``jax.hessian`` of the whole NLP."""
+    from jaxmm import analysis
+
+    task = scenario("take_off", knots=2, joint_torque_limits=True)
+    nlp = transcription.stagewise_nlp(task)
+    n = task.robot.model.n_joints
+    assert [name for name, _ in transcription.family_rows(task)["transition_inequality"]] == [
+        "planar_complementarity", "joint_torque"]
+    effort = np.asarray(task.robot.model.effort_limits)
+    np.testing.assert_array_equal(np.asarray(nlp.transition_upper[-n:]), effort)
+    np.testing.assert_array_equal(np.asarray(nlp.transition_lower[-n:]), -effort)
+    Z, theta = _random_point(task, seed=4)
+    trajectory = transcription.to_trajectory(task, Z, theta)
+    rows = np.asarray(jax.jit(stagewise.residuals)(nlp, Z, theta).transition_inequality)[:, -n:]
+    torques = analysis.joint_torques(task, trajectory).torques[1:]
+    assert np.abs(rows - torques).max() <= 1e-10 * np.abs(torques).max()
+
+    B = jax.jit(stagewise.blocks)(nlp, Z, theta)
+    run = stagewise.row_supports(nlp)["transition_inequality"][-1]
+    for block, columns in ((B.transition_inequality_z, run.now), (B.transition_inequality_znext, run.next)):
+        outside = np.setdiff1d(np.arange(nlp.knot_size), columns)
+        assert np.all(np.asarray(block)[:, run.start:run.stop][:, :, outside] == 0.0)
+
+    K, nz = Z.shape
+    r = jax.eval_shape(stagewise.residuals, nlp, Z, theta)
+    groups = ("path_equality", "transition_equality", "path_inequality", "transition_inequality")
+    key = jax.random.PRNGKey(1)
+    y = [jnp.zeros(getattr(r, g).shape) for g in groups[:3]] + [jax.random.normal(key, r.transition_inequality.shape)]
+    D, L, Bt, C = (np.asarray(x) for x in jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y))
+
+    def weighted(w):
+        residuals = stagewise.residuals(nlp, w[: K * nz].reshape(K, nz), w[K * nz :])
+        return jnp.sum(residuals.transition_inequality * y[3])
+
+    dense = np.asarray(jax.jit(jax.hessian(weighted))(jnp.concatenate([Z.reshape(-1), theta])))
+    scale = max(1.0, np.abs(dense).max())
+    for k in range(K):
+        now = slice(k * nz, (k + 1) * nz)
+        assert np.abs(D[k] - dense[now, now]).max() <= 1e-10 * scale
+        assert np.abs(Bt[k] - dense[now, K * nz:]).max() <= 1e-10 * scale
+        if k:
+            assert np.abs(L[k - 1] - dense[now, (k - 1) * nz: k * nz]).max() <= 1e-10 * scale
+    assert np.abs(C - dense[K * nz:, K * nz:]).max() <= 1e-10 * scale

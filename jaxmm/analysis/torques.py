@@ -12,10 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm.physics.jets import thrust_forces
-from jaxmm.rigid_body.centroidal import com_position
-from jaxmm.rigid_body.dynamics import inverse_dynamics
-from jaxmm.rigid_body.kinematics import frame_poses
+from jaxmm.transcription.whole_body import generalised_forces
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,22 +71,12 @@ def knot_accelerations(task, trajectory):
     return jnp.concatenate([rates[:1], rates])
 
 
-def _knot_torques(task, q, nu, nu_dot, contact_forces, thrust):
-    """τ (6 + n,) at one knot, with the base wrench moved to the CoM."""
-    robot = task.robot
-    model = robot.model
-    _, jet_rotations = frame_poses(model, q, robot.jet_frames)
-    forces = jnp.concatenate([contact_forces, thrust_forces(thrust, jet_rotations)])
-    tau = inverse_dynamics(model, q, nu, nu_dot, forces, robot.contact_frames + robot.jet_frames, task.params.gravity)
-    lever = q[:3] - com_position(model, q)  # base origin − CoM
-    return jnp.concatenate([tau[:3], tau[3:6] + jnp.cross(lever, tau[:3]), tau[6:]])
-
-
 @jax.jit
 def _plan_torques(task, trajectory):
     knots = trajectory.knots
-    return jax.vmap(_knot_torques, in_axes=(None, 0, 0, 0, 0, 0))(
-        task, knots.configuration, knots.velocity, knot_accelerations(task, trajectory), knots.contact_forces, knots.thrust)
+    return jax.vmap(generalised_forces, in_axes=(None, 0, 0, 0, 0, 0, None))(
+        task.robot, knots.configuration, knots.velocity, knot_accelerations(task, trajectory), knots.contact_forces,
+        knots.thrust, task.params.gravity)
 
 
 def joint_torques(task, trajectory):

@@ -153,15 +153,17 @@ def resimulate_com(task, trajectory):
 
 
 def validate(task, trajectory, *, tolerance=1e-4, contact_height=0.01, flight_force=1.0, resimulation_tolerance=0.01,
-             effort_limits=False):
+             effort_limits=None):
     """Check a trajectory against the task's physics; returns a ``ValidationReport``.
 
     tolerance: on every constraint family, box, target and range (physical units, as IPOPT's
     constraint-violation tolerance of the paper); contact_height [m]: a corner higher than
     this is off the ground, and then its vertical force must be ≤ flight_force [N];
-    resimulation_tolerance [m]: on the re-simulated CoM; effort_limits: also require every
-    joint torque within its URDF effort limit (|τ| / τ_max ≤ 1 + tolerance); otherwise that check
-    is reported without deciding ``ok``, as the paper's NLP does not bound the torques.
+    resimulation_tolerance [m]: on the re-simulated CoM; effort_limits: require every joint
+    torque at knots 1..N (those whose accelerations the transcription defines) within its URDF
+    effort limit, |τ| ≤ τ_max (1 + tolerance); None: where the task bounds them
+    (``joint_torque_limits``). Otherwise the check is reported without deciding ``ok``, as the
+    paper's NLP does not bound the torques.
     """
     checks = []
     values = jax.jit(constraints.evaluate)(task, trajectory)
@@ -201,9 +203,11 @@ def validate(task, trajectory, *, tolerance=1e-4, contact_height=0.01, flight_fo
     resimulated = resimulate_com(task, trajectory)
     checks.append(Check("re-simulated CoM", float(np.abs(resimulated - com).max()), resimulation_tolerance, "metres"))
     torques = joint_torques(task, trajectory)
-    name, knot, torque, limit = torques.worst
-    checks.append(Check("joint torques within effort limits", float(np.max(torques.load)), 1.0 + tolerance,
-                        f"|τ|/τ_max; worst: {name} at knot {knot}, {torque:.3g} N m against {limit:.3g} N m",
-                        enforced=bool(effort_limits)))
+    load = torques.load[1:]
+    knot, joint = np.unravel_index(np.argmax(load), load.shape)
+    checks.append(Check("joint torques within effort limits", float(load[knot, joint]), 1.0 + tolerance,
+                        f"|τ|/τ_max at knots 1..N; worst: {torques.joint_names[joint]} at knot {knot + 1}, "
+                        f"{torques.torques[knot + 1, joint]:.3g} N m against {torques.effort_limits[joint]:.3g} N m",
+                        enforced=task.joint_torque_limits if effort_limits is None else bool(effort_limits)))
     return ValidationReport(checks=tuple(checks), flight_knots=flight_knots(airborne), resimulated_com=resimulated,
                             torques=torques)

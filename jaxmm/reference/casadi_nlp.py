@@ -41,6 +41,7 @@ TRANSITION_EQUALITIES = (
 )
 PATH_INEQUALITIES = ("friction_cone", "normal_complementarity", "corner_com", "jet_com")
 TRANSITION_INEQUALITIES = ("planar_complementarity",)
+JOINT_TORQUE = "joint_torque"  # a transition inequality where Task.joint_torque_limits asks for it
 COST_TERMS = ("running", "final", "initial", "slack", "horizon")
 HESSIANS = ("exact", "limited-memory")
 
@@ -142,8 +143,9 @@ def _normalised_urdf(urdf_path):
     return root, ET.tostring(root, encoding="unicode")
 
 
-def _kindyn(urdf_path, joint_names, frames):
-    """ADAM KinDynComputations (mixed representation) after checking joint and frame names.
+def _kindyn(urdf_path, joint_names, frames, gravity):
+    """ADAM KinDynComputations (mixed representation, gravity (3,) [m/s²]) after checking joint
+    and frame names.
 
     Joints of the URDF that are not in joint_names are locked at 0 by ADAM.
     """
@@ -156,7 +158,7 @@ def _kindyn(urdf_path, joint_names, frames):
     missing = [f for f in frames if f not in links]
     if missing:
         raise ValueError(f"frames {missing} are not links of {urdf_path}")
-    kindyn = KinDynComputations(xml, list(joint_names))
+    kindyn = KinDynComputations(xml, list(joint_names), gravity=np.concatenate([gravity, np.zeros(3)]))
     kindyn.set_frame_velocity_representation(Representations.MIXED_REPRESENTATION)
     return kindyn
 
@@ -180,6 +182,25 @@ def _kinematics_function(kindyn, n_joints, contact_frames, jet_frames):
         ["com", "cmm_angular", "corners", "jet_positions", "jet_axes"],
         dict(cse=True),
     )
+
+
+def _joint_torque_function(kindyn, n_joints, contact_frames, jet_frames):
+    """Function (p, ρ, s, ν (6 + n,), ν̇ (6 + n,), f (3, nc), T (nj,)) → the joint torques (n,)
+    [N m] of τ = M(q) ν̇ + h(q, ν) − Σ_i J_i(q)ᵀ f_i − Σ_j J_j(q)ᵀ F_j with F_j = −T_j R_j e_z (eq. 5):
+    ADAM's mass matrix, bias forces and frame Jacobians (mixed representation), not jaxmm's
+    recursive Newton–Euler algorithm."""
+    p, rho, s = cs.SX.sym("p", 3), cs.SX.sym("rho", 4), cs.SX.sym("s", n_joints)
+    nu, nu_dot = cs.SX.sym("nu", 6 + n_joints), cs.SX.sym("nu_dot", 6 + n_joints)
+    forces, thrust = cs.SX.sym("f", 3, len(contact_frames)), cs.SX.sym("T", len(jet_frames))
+    H = _base_transform(p, rho)
+    tau = cs.mtimes(kindyn.mass_matrix_fun()(H, s), nu_dot) + kindyn.bias_force_fun()(H, s, nu[:6], nu[6:])
+    for i, frame in enumerate(contact_frames):
+        tau -= cs.mtimes(kindyn.jacobian_fun(frame)(H, s)[:3, :].T, forces[:, i])
+    for j, frame in enumerate(jet_frames):
+        axis = kindyn.forward_kinematics_fun(frame)(H, s)[:3, 2]
+        tau -= cs.mtimes(kindyn.jacobian_fun(frame)(H, s)[:3, :].T, -thrust[j] * axis)
+    return cs.Function("joint_torque", [p, rho, s, nu, nu_dot, forces, thrust], [tau[6:]],
+                       ["p", "rho", "s", "nu", "nu_dot", "f", "T"], ["tau"], dict(cse=True))
 
 
 # --------------------------------------------------------------------------- the NLP
@@ -220,11 +241,15 @@ class ReferenceNLP:
         self.n_variables = task.n_knots * self.layout.size + 1
         self._numbers = _Numbers.of(task)
         robot = task.robot
-        kindyn = _kindyn(urdf_path, robot.model.joint_names, robot.contact_frames + robot.jet_frames)
+        kindyn = _kindyn(urdf_path, robot.model.joint_names, robot.contact_frames + robot.jet_frames,
+                         self._numbers.params["gravity"])
         self.mass = float(kindyn.get_total_mass())
         self._kinematics = _kinematics_function(
             kindyn, self.layout.n_joints, robot.contact_frames, robot.jet_frames
         )
+        self._effort_limits = np.asarray(robot.model.effort_limits, dtype=float)
+        self._joint_torque = (_joint_torque_function(kindyn, self.layout.n_joints, robot.contact_frames,
+                                                     robot.jet_frames) if task.joint_torque_limits else None)
         self._path = self._path_function()
         self._transition = self._transition_function()
         self._costs = {name: self._cost_function(name) for name in ("running", "final", "initial", "slack")}
@@ -298,7 +323,8 @@ class ReferenceNLP:
 
     def _transition_function(self):
         """Function (z (nz,), z⁺ (nz,), T_total) → the transition equalities (eq. 24-27) then
-        the planar complementarity (eq. 21) of one interval."""
+        the planar complementarity (eq. 21) of one interval, and the joint torques at k+1 where
+        the task bounds them."""
         z, a = self._knot("z")
         z_next, b = self._knot("z_next")
         total_time = cs.SX.sym("total_time")
@@ -329,7 +355,13 @@ class ReferenceNLP:
             "thrust_rate_integration": b["thrust_rate"] - a["thrust_rate"] - dt * thrust_acceleration,
             "planar_complementarity": cs.vertcat(tangential - slack, tangential + slack),
         }
-        names = TRANSITION_EQUALITIES + TRANSITION_INEQUALITIES
+        if self._joint_torque is not None:  # at knot k+1, with ν̇ by backward Euler (eq. 24)
+            nu_now, nu_next = (cs.vertcat(c["base_linear_velocity"], c["base_angular_velocity"], c["joint_velocities"])
+                               for c in (a, b))
+            families[JOINT_TORQUE] = self._joint_torque(
+                b["base_position"], b["base_quaternion"], b["joint_positions"], nu_next, (nu_next - nu_now) / dt,
+                cs.reshape(b["contact_forces"], 3, nc), b["thrust"])
+        names = TRANSITION_EQUALITIES + self._transition_inequalities()
         return cs.Function(
             "transition", [z, z_next, total_time], [families[n] for n in names],
             ["z", "z_next", "total_time"], list(names), _FUNCTION_OPTIONS,
@@ -403,7 +435,7 @@ class ReferenceNLP:
         path = self._path.map(N + 1)(knots)
         transition = self._transition.map(N)(knots[:, :N], knots[:, 1:], cs.repmat(total_time, 1, N))
         by_name = dict(zip(PATH_EQUALITIES + PATH_INEQUALITIES, path))
-        by_name.update(zip(TRANSITION_EQUALITIES + TRANSITION_INEQUALITIES, transition))
+        by_name.update(zip(TRANSITION_EQUALITIES + self._transition_inequalities(), transition))
         families = {name: by_name[name] for name in self.family_names()}
         costs = {
             "running": total_time / N * cs.sum2(self._costs["running"].map(N)(knots[:, :N])),
@@ -415,10 +447,12 @@ class ReferenceNLP:
         costs["total"] = sum(costs[name] for name in COST_TERMS)
         return families, costs
 
-    @staticmethod
-    def family_names():
+    def _transition_inequalities(self):
+        return TRANSITION_INEQUALITIES + ((JOINT_TORQUE,) if self.task.joint_torque_limits else ())
+
+    def family_names(self):
         """Every constraint family: equalities (path, transition), then inequalities."""
-        return PATH_EQUALITIES + TRANSITION_EQUALITIES + PATH_INEQUALITIES + TRANSITION_INEQUALITIES
+        return PATH_EQUALITIES + TRANSITION_EQUALITIES + PATH_INEQUALITIES + self._transition_inequalities()
 
     def n_stages(self, family):
         """N + 1 for a path family, N for a transition family."""
@@ -474,6 +508,7 @@ class ReferenceNLP:
                 np.concatenate([np.full(2 * nc, -np.inf), -sigma]),
                 np.concatenate([sigma, np.full(2 * nc, np.inf)]),
             ),
+            JOINT_TORQUE: (-self._effort_limits, self._effort_limits),
         }
 
     def constraint_bounds(self):

@@ -11,6 +11,7 @@ from jaxmm.physics.centroidal_dynamics import momentum_rate
 from jaxmm.physics.contacts import friction_cone, normal_complementarity, planar_complementarity
 from jaxmm.physics.jets import thrust_acceleration, thrust_forces
 from jaxmm.transcription.variables import Trajectory
+from jaxmm.transcription.whole_body import generalised_forces
 
 PATH_EQUALITIES = ("centroidal_dynamics", "com", "angular_momentum", "contact_points", "jet_dynamics")
 TRANSITION_EQUALITIES = (
@@ -20,6 +21,8 @@ TRANSITION_EQUALITIES = (
 )
 PATH_INEQUALITIES = ("friction_cone", "normal_complementarity", "corner_com", "jet_com")
 TRANSITION_INEQUALITIES = ("planar_complementarity",)
+# Beyond the paper: |τ_j| ≤ τ_max,j at knots 1..N, where the task asks for it.
+JOINT_TORQUE = "joint_torque"
 
 _Q = ("base_position", "base_quaternion", "joint_positions")
 _NU = ("base_linear_velocity", "base_angular_velocity", "joint_velocities")
@@ -47,7 +50,14 @@ FAMILY_FIELDS = dict(
     corner_com=(("contact_points", "com"), ()),
     jet_com=(("com",) + _Q, ()),
     planar_complementarity=(("contact_forces", "contact_points", "tangential_slack"), ("contact_points",)),
+    joint_torque=(_NU, _Q + _NU + ("contact_forces", "thrust")),
 )
+
+
+def transition_inequality_families(task):
+    """The transition inequality families of the task, in row order: the planar complementarity,
+    then the joint torques where ``task.joint_torque_limits`` asks for them."""
+    return TRANSITION_INEQUALITIES + ((JOINT_TORQUE,) if task.joint_torque_limits else ())
 
 
 def knot_kinematics(task, configuration):
@@ -134,12 +144,19 @@ def path_inequalities(task, knot, total_time, kinematics=None):
 
 
 def transition_inequalities(task, knot, next_knot, total_time):
-    """Planar complementarity between knots k and k+1 (eq. 21): {family: (4 nc,)}."""
-    del total_time
+    """Planar complementarity between knots k and k+1 (eq. 21): {family: (4 nc,)}; with
+    ``task.joint_torque_limits``, the joint torques (n,) [N m] at knot k+1 too: inverse dynamics
+    at (q, ν)[k+1] with ν̇ = (ν[k+1] − ν[k]) / Δt (backward Euler, the rule of eq. 24 and of the
+    positions' integration rows), under knot k+1's contact forces and thrusts."""
     upper, lower = planar_complementarity(
         knot.contact_forces, knot.contact_points, next_knot.contact_points, knot.tangential_slack
     )
-    return dict(planar_complementarity=jnp.concatenate([upper, lower]))
+    out = dict(planar_complementarity=jnp.concatenate([upper, lower]))
+    if task.joint_torque_limits:
+        rate = (next_knot.velocity - knot.velocity) * (task.n_intervals / total_time)
+        out[JOINT_TORQUE] = generalised_forces(task.robot, next_knot.configuration, next_knot.velocity, rate,
+                                               next_knot.contact_forces, next_knot.thrust, task.params.gravity)[6:]
+    return out
 
 
 def inequality_bounds(task):
@@ -149,7 +166,9 @@ def inequality_bounds(task):
     jet = jnp.full(3 * nj, 1.0) * task.params.jet_com_bound
     sigma = jnp.full(2 * nc, 1.0) * task.params.complementarity_tolerance  # σ of eq. (20, 21)
     inf = jnp.inf
+    effort = task.robot.model.effort_limits
     return dict(
+        joint_torque=(-effort, effort),
         friction_cone=(jnp.full(4 * nc, -inf), jnp.zeros(4 * nc)),
         normal_complementarity=(jnp.full(nc, -inf), sigma[:nc]),
         corner_com=(-corner, corner),

@@ -192,16 +192,23 @@ def _path_curvature_columns(layout):
 def _transition_curvature_columns(task):
     """Flat columns of (z̃_k, z̃_{k+1}) in which the transition rows are not linear, T_total apart:
     ρ_k and ω_{k+1} (quaternion integration, eq. 25), f_z,k and the corners' x, y at k and k+1
-    (planar complementarity, eq. 21). Every other row is linear but for Δt × a rate. A tuple
-    (static), for ``StagewiseFunctions.transition_curvature_columns``."""
+    (planar complementarity, eq. 21). Every other row is linear but for Δt × a rate. With the
+    joint torques, also ν_k and the orientation, joints, ν, contact forces and thrusts at k+1
+    (the base position does not move a joint torque). A tuple (static), for
+    ``StagewiseFunctions.transition_curvature_columns``."""
     layout = task.layout
     nz = layout.size
     planar = np.sort(np.concatenate([_columns(layout, "contact_points", slice(i, None, 3)) for i in (0, 1)]))
-    columns = np.concatenate([
+    columns = [
         _columns(layout, "base_quaternion"), _columns(layout, "contact_forces", slice(2, None, 3)), planar,
         _columns(layout, "base_angular_velocity", offset=nz), planar + nz,
-    ])
-    return tuple(int(c) for c in np.sort(columns))
+    ]
+    if task.joint_torque_limits:
+        velocity = ("base_linear_velocity", "base_angular_velocity", "joint_velocities")
+        columns += [_columns(layout, f) for f in velocity]
+        columns += [_columns(layout, f, offset=nz) for f in velocity + (
+            "base_quaternion", "joint_positions", "contact_forces", "thrust")]
+    return tuple(int(c) for c in np.unique(np.concatenate(columns)))
 
 
 def _embedded(block, columns, size):
@@ -254,7 +261,7 @@ def _linearised_hessian(fn, fixed, w0, columns, through, curvature):
 
 def _transition_inequality(task, z, z_next, theta):
     values = constraints.transition_inequalities(task, _knot(task, z), _knot(task, z_next), theta[0])
-    return _concat(values, constraints.TRANSITION_INEQUALITIES)
+    return _concat(values, constraints.transition_inequality_families(task))
 
 
 def _row_supports(task):
@@ -296,7 +303,7 @@ def stagewise_nlp(task):
     lower, upper = constraints.variable_bounds(task)
     bounds = constraints.inequality_bounds(task)
     path = [bounds[name] for name in constraints.PATH_INEQUALITIES]
-    transition = [bounds[name] for name in constraints.TRANSITION_INEQUALITIES]
+    transition = [bounds[name] for name in constraints.transition_inequality_families(task)]
     return StagewiseNLP(
         args=task,
         knot_data=jnp.asarray(costs.knot_roles(task.n_knots)),
@@ -334,13 +341,13 @@ def family_rows(task):
         base_position_integration=3, base_quaternion_integration=4, joint_integration=n,
         force_integration=3 * nc, thrust_integration=nj, thrust_rate_integration=nj,
         friction_cone=4 * nc, normal_complementarity=nc, corner_com=3 * nc, jet_com=3 * nj,
-        planar_complementarity=4 * nc,
+        planar_complementarity=4 * nc, joint_torque=n,
     )
     groups = dict(
         path_equality=constraints.PATH_EQUALITIES,
         transition_equality=constraints.TRANSITION_EQUALITIES,
         path_inequality=constraints.PATH_INEQUALITIES,
-        transition_inequality=constraints.TRANSITION_INEQUALITIES,
+        transition_inequality=constraints.transition_inequality_families(task),
     )
     return {group: [(name, sizes[name]) for name in names] for group, names in groups.items()}
 

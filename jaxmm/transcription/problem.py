@@ -125,7 +125,9 @@ class Task:
     n_intervals: N (the trajectory has N + 1 knots); zero_initial_thrust: T[0], Ṫ[0] ≈ 0;
     integration: "trapezoidal" (published runs) or "backward_euler" (the paper's text);
     slack_penalty: "linear" (published) or "squared" (the text); upper_body_joints: indices
-    in s of the joints weighted by ``joint_vel_upper``.
+    in s of the joints weighted by ``joint_vel_upper``; joint_torque_limits: add the
+    ``joint_torque`` family |τ_j| ≤ τ_max,j (the URDF's effort limits, ``Model.effort_limits``)
+    at knots 1..N, beyond the paper's NLP.
     """
 
     robot: Robot
@@ -137,6 +139,7 @@ class Task:
     integration: str = dataclasses.field(default="trapezoidal", metadata=dict(static=True))
     slack_penalty: str = dataclasses.field(default="linear", metadata=dict(static=True))
     upper_body_joints: tuple = dataclasses.field(default=(), metadata=dict(static=True))
+    joint_torque_limits: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
     @property
     def layout(self):
