@@ -94,6 +94,12 @@ def test_random_trees_match_pinocchio(record_property):
             assert np.abs(placement.rotation - np.asarray(rotations[k])).max() <= 1e-9, name
         assert np.abs(pin.centerOfMass(twin.model, twin.data, q_pin) - np.asarray(com)).max() <= 1e-9
         assert np.abs(pin.computeCentroidalMap(twin.model, twin.data, q_pin) @ v_pin - np.asarray(h)).max() <= 1e-9
+        # Inverse dynamics with a force on the last link, prismatic and massless links included.
+        nu_dot, force, frame = rng.normal(size=model.nv), rng.normal(size=(1, 3)), model.frame_names[-1]
+        tau = np.asarray(jaxmm.inverse_dynamics(model, q, nu, nu_dot, force, (frame,)))
+        reference = twin.velocity_map(q).T @ pin.rnea(twin.model, twin.data, q_pin, v_pin, twin.acceleration(q, nu, nu_dot),
+                                                      twin.external_forces(q, (frame,), force))
+        assert np.abs(tau - reference).max() <= 1e-9 * max(1.0, np.abs(reference).max())
         examples.append(n)
 
     check()
