@@ -59,7 +59,9 @@ def main(argv=None):
     reports = []
     for path in args.solutions:
         task, result = io.load(path)
-        reports.append((f"{task.name} ({result.status.name.lower()})", task, analysis.joint_torques(task, result.trajectory)))
+        bounded = ", torques bounded" if task.joint_torque_limits else ""
+        reports.append((f"{task.name} ({result.status.name.lower()}{bounded})", task,
+                        analysis.joint_torques(task, result.trajectory)))
     print(render(("plan", "N", "largest |τ|/τ_max", "where", "over the limit", "base force ≤", "base torque ≤"),
                  plan_rows(reports)))
     print()
