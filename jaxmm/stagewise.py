@@ -40,6 +40,10 @@ class StagewiseFunctions:
     ints in 0..2 nz − 1, static: from args' static fields) in which the transition functions
     are nonlinear for a fixed θ; they must be linear in every other entry. The solver then
     takes their Hessian over those columns alone (and θ's rows by forward-over-reverse);
+    transition_through_columns (optional): (args) → None, or a subset of those columns (static)
+    such that every second derivative between two curvature columns outside it is zero (the
+    functions are jointly affine in the others, for a fixed θ): the Hessian then takes tangents
+    along the subset alone and fills the other rows by symmetry;
     path_jacobian (optional): (args, z, θ[, y_e, y_g]) → ((∂e/∂z, ∂e/∂θ), (∂g/∂z, ∂g/∂θ),
     linearisation): both path functions' Jacobians from one pass, plus a pytree of what the path
     Hessian can reuse at the same point (on a robot: the kinematics and their Jacobian, which the
@@ -47,6 +51,9 @@ class StagewiseFunctions:
     multipliers it may also hold what the path Hessian needs at those multipliers (on a robot:
     the kinematics' curvature, from the same pass as their Jacobian), and ``path_hessian`` must
     then be called with the same multipliers;
+    transition_inequality_jacobian (optional): (args, z, z_next, θ) → (∂h/∂z (mh, nz),
+    ∂h/∂z_next (mh, nz), ∂h/∂θ (mh, ng)), or None (static: from args' static fields) for
+    ``jax.jacfwd``'s; for NLPs whose inequalities reach a costly part through few columns;
     row_supports (optional): (args) → {group: tuple of ``RowSupport``}, for each of the four
     constraint groups ("path_equality", …) a partition of its rows into consecutive runs with the
     columns of z_k (and z_{k+1}) they can depend on: the Jacobians' sparsity pattern, static
@@ -63,6 +70,8 @@ class StagewiseFunctions:
     path_hessian: Callable | None = None
     knot_cost_derivatives: Callable | None = None
     transition_curvature_columns: Callable | None = None
+    transition_through_columns: Callable | None = None
+    transition_inequality_jacobian: Callable | None = None
     row_supports: Callable | None = None
     path_jacobian: Callable | None = None
 
@@ -191,8 +200,12 @@ def blocks(nlp, Z, theta, path_multipliers=None):
         g_z, g_theta = jax.jacfwd(f.path_inequality, argnums=(1, 2))(args, z, theta)
         return (e_z, e_theta), (g_z, g_theta), None
 
-    def transition(fn):
-        return jax.vmap(jax.jacfwd(fn, argnums=(1, 2, 3)), in_axes=(None, 0, 0, None))(a, Z[:-1], Z[1:], theta)
+    def transition(fn, jacobian=None):
+        def one(args, z, z_next, theta):
+            given = None if jacobian is None else jacobian(args, z, z_next, theta)
+            return jax.jacfwd(fn, argnums=(1, 2, 3))(args, z, z_next, theta) if given is None else given
+
+        return jax.vmap(one, in_axes=(None, 0, 0, None))(a, Z[:-1], Z[1:], theta)
 
     def knot_cost_derivatives(args, z, theta, d):
         if f.knot_cost_derivatives is not None:
@@ -210,7 +223,7 @@ def blocks(nlp, Z, theta, path_multipliers=None):
     (pe_z, pe_theta), (pi_z, pi_theta), linearisation = jax.vmap(path_jacobian, in_axes=(None, 0, None) + (0,) * len(y))(
         a, Z, theta, *y)
     te_z, te_znext, te_theta = transition(f.transition_equality)
-    ti_z, ti_znext, ti_theta = transition(f.transition_inequality)
+    ti_z, ti_znext, ti_theta = transition(f.transition_inequality, f.transition_inequality_jacobian)
     return Blocks(
         cost_z=cost_z,
         cost_theta=jnp.sum(cost_theta, axis=0) + global_grad(a, theta),
@@ -254,6 +267,13 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
         raise ValueError(f"transition_curvature_columns must be distinct columns in 0..{2 * nz - 1}, "
                          f"got {columns.tolist()}")
 
+    through = None if f.transition_through_columns is None else f.transition_through_columns(a)
+    if through is not None:
+        through = np.asarray(through, dtype=int).reshape(-1)
+        if not np.all(np.isin(through, columns)) or through.size != np.unique(through).size:
+            raise ValueError("transition_through_columns must be distinct transition_curvature_columns")
+        through = np.flatnonzero(np.isin(columns, through))  # positions among the columns
+
     def path_hessian(args, z, theta, y_e, y_g, linearisation):
         def weighted(w):
             return jnp.sum(f.path_equality(args, w[:nz], w[nz:]) * y_e) + jnp.sum(
@@ -266,7 +286,7 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
     H = jax.vmap(hessian, in_axes=(None, 0, None, 0, 0, None if path_linearisation is None else 0))(
         a, Z, theta, path_equality, path_inequality, path_linearisation)
     D, B, C = H[:, :nz, :nz], H[:, :nz, nz:], jnp.sum(H[:, nz:, nz:], axis=0)
-    interval = functools.partial(_transition_curvature, f, columns=columns)
+    interval = functools.partial(_transition_curvature, f, columns=columns, through=through)
     inner, mixed, corner = jax.vmap(interval, in_axes=(None, 0, 0, None, 0, 0))(
         a, Z[:-1], Z[1:], theta, transition_equality, transition_inequality)
     # Only the nonlinear columns' entries are scattered: the dense (2 nz + ng)² Hessian of
@@ -281,9 +301,11 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
     return D, L, B, C + jnp.sum(corner, axis=0)
 
 
-def _transition_curvature(functions, args, z, z_next, theta, y_t, y_h, columns):
+def _transition_curvature(functions, args, z, z_next, theta, y_t, y_h, columns, through=None):
     """One interval's Σ y ∇²(t, h): the Hessian over ``columns`` of (z, z_next) (c, c), the
-    mixed block ∂²/∂(z, z_next)∂θ (2 nz, ng) and ∂²/∂θ² (ng, ng)."""
+    mixed block ∂²/∂(z, z_next)∂θ (2 nz, ng) and ∂²/∂θ² (ng, ng). through: None, or the
+    positions among ``columns`` whose tangents the Hessian needs (the functions are jointly affine
+    in the others): their rows by forward over reverse, the others' rows by symmetry."""
     nz = z.shape[0]
 
     def weighted(w, th):
@@ -292,7 +314,16 @@ def _transition_curvature(functions, args, z, z_next, theta, y_t, y_h, columns):
             y_h, functions.transition_inequality(args, now, nxt, th))
 
     w0 = jnp.concatenate([z, z_next])
-    inner = jax.hessian(lambda v: weighted(w0.at[columns].set(v), theta))(w0[columns])
+    if through is None:
+        inner = jax.hessian(lambda v: weighted(w0.at[columns].set(v), theta))(w0[columns])
+    else:
+        gradient = jax.grad(lambda v: weighted(w0.at[columns].set(v), theta))
+        v0 = w0[columns]
+        tangents = jnp.eye(columns.size, dtype=w0.dtype)[through]
+        across = jax.vmap(lambda e: jax.jvp(gradient, (v0,), (e,))[1])(tangents)  # rows ``through``
+        others = np.setdiff1d(np.arange(columns.size), through)
+        inner = jnp.zeros((columns.size, columns.size), w0.dtype).at[through].set(across)
+        inner = inner.at[others[:, None], through[None, :]].set(across[:, others].T)
     mixed, corner = jax.jacfwd(lambda th: jax.grad(weighted, argnums=(0, 1))(w0, th))(theta)
     return inner, mixed, corner
 

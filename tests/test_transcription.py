@@ -344,6 +344,22 @@ def test_bad_transition_curvature_columns_are_refused(columns):
         stagewise.constraint_curvature(bad, Z, theta, *y)
 
 
+def test_bad_transition_through_columns_are_refused():
+    """Tangent columns must be distinct curvature columns."""
+    task = scenario("take_off", knots=2)
+    nlp = transcription.stagewise_nlp(task)
+    Z, theta = transcription.to_variables(task, initial_guess(task))
+    r = jax.eval_shape(stagewise.residuals, nlp, Z, theta)
+    y = [jnp.ones(getattr(r, g).shape) for g in ("path_equality", "transition_equality", "path_inequality",
+                                               "transition_inequality")]
+    outside = int(np.setdiff1d(np.arange(2 * nlp.knot_size), nlp.functions.transition_curvature_columns(task))[0])
+    for through in ((outside,), (nlp.functions.transition_curvature_columns(task)[0],) * 2):
+        bad = dataclasses.replace(nlp, functions=dataclasses.replace(
+            nlp.functions, transition_through_columns=lambda args, through=through: through))
+        with pytest.raises(ValueError, match="transition_through_columns must be distinct"):
+            stagewise.constraint_curvature(bad, Z, theta, *y)
+
+
 # The backward-Euler variant (≈ 35 s) under ``pytest -m slow``: keeps the default run under 20 minutes.
 @pytest.mark.parametrize("integration", [pytest.param("backward_euler", marks=pytest.mark.slow), "trapezoidal"])
 def test_row_supports_cover_every_nonzero_of_the_jacobians(integration):
@@ -433,13 +449,17 @@ def test_resample_bad_input(call, error, message):
 def test_joint_torque_family_rows_supports_and_curvature():
     """With ``joint_torque_limits``, the transition inequalities end with the joint torques at
     knot k+1 (the same as ``analysis.joint_torques``' at knots 1..N), bounded by the URDF's effort
-    limits; their Jacobian stays inside the declared supports, and the transcription's own
-    Hessian of y·h over its curvature columns equals ``jax.hessian`` of the whole NLP."""
+    limits; their Jacobian (along their own columns alone) equals ``jax.jacfwd``'s and stays inside
+    the declared supports, and the transcription's own
+    Hessian of y·h (tangents along ``transition_through_columns`` alone, the rest by symmetry)
+    equals ``jax.hessian`` of the whole NLP."""
     from jaxmm import analysis
 
     task = scenario("take_off", knots=2, joint_torque_limits=True)
     nlp = transcription.stagewise_nlp(task)
     n = task.robot.model.n_joints
+    through = nlp.functions.transition_through_columns(task)
+    assert set(through) < set(nlp.functions.transition_curvature_columns(task))
     assert [name for name, _ in transcription.family_rows(task)["transition_inequality"]] == [
         "planar_complementarity", "joint_torque"]
     effort = np.asarray(task.robot.model.effort_limits)
@@ -452,6 +472,13 @@ def test_joint_torque_family_rows_supports_and_curvature():
     assert np.abs(rows - torques).max() <= 1e-10 * np.abs(torques).max()
 
     B = jax.jit(stagewise.blocks)(nlp, Z, theta)
+    # The Jacobian along the torque rows' own columns (``transition_inequality_jacobian``)
+    # equals ``jax.jacfwd`` of the whole function.
+    dense = jax.jit(jax.vmap(jax.jacfwd(nlp.functions.transition_inequality, argnums=(1, 2, 3)),
+                             in_axes=(None, 0, 0, None)))(task, Z[:-1], Z[1:], theta)
+    for ours, reference in zip((B.transition_inequality_z, B.transition_inequality_znext, B.transition_inequality_theta),
+                               dense):
+        assert np.abs(np.asarray(ours) - np.asarray(reference)).max() <= 1e-12 * np.abs(np.asarray(reference)).max()
     run = stagewise.row_supports(nlp)["transition_inequality"][-1]
     for block, columns in ((B.transition_inequality_z, run.now), (B.transition_inequality_znext, run.next)):
         outside = np.setdiff1d(np.arange(nlp.knot_size), columns)
@@ -459,14 +486,14 @@ def test_joint_torque_family_rows_supports_and_curvature():
 
     K, nz = Z.shape
     r = jax.eval_shape(stagewise.residuals, nlp, Z, theta)
-    groups = ("path_equality", "transition_equality", "path_inequality", "transition_inequality")
-    key = jax.random.PRNGKey(1)
-    y = [jnp.zeros(getattr(r, g).shape) for g in groups[:3]] + [jax.random.normal(key, r.transition_inequality.shape)]
+    keys = jax.random.split(jax.random.PRNGKey(1))
+    y = [jnp.zeros(r.path_equality.shape), jax.random.normal(keys[0], r.transition_equality.shape),
+         jnp.zeros(r.path_inequality.shape), jax.random.normal(keys[1], r.transition_inequality.shape)]
     D, L, Bt, C = (np.asarray(x) for x in jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y))
 
     def weighted(w):
         residuals = stagewise.residuals(nlp, w[: K * nz].reshape(K, nz), w[K * nz :])
-        return jnp.sum(residuals.transition_inequality * y[3])
+        return jnp.sum(residuals.transition_equality * y[1]) + jnp.sum(residuals.transition_inequality * y[3])
 
     dense = np.asarray(jax.jit(jax.hessian(weighted))(jnp.concatenate([Z.reshape(-1), theta])))
     scale = max(1.0, np.abs(dense).max())

@@ -4,6 +4,8 @@ The functions below are module-level, so the ``StagewiseFunctions`` they form is
 static object: every task of the same structure reuses the same compiled code.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -211,6 +213,23 @@ def _transition_curvature_columns(task):
     return tuple(int(c) for c in np.unique(np.concatenate(columns)))
 
 
+def _transition_through_columns(task):
+    """With the joint torques, the transition curvature columns whose tangents the Hessian needs:
+    ρ_k and ω_{k+1} (quaternion integration), f_z,k (planar complementarity), and the orientation,
+    joints and ν at k+1 (the torques). The rows are jointly affine in the other curvature columns
+    (the corners' x, y, ν_k, and the contact forces and thrusts at k+1, which enter the torques
+    linearly), so their Hessian rows come by symmetry. None (every column a tangent) without the
+    torques. A tuple (static), for ``StagewiseFunctions.transition_through_columns``."""
+    if not task.joint_torque_limits:
+        return None
+    layout = task.layout
+    nz = layout.size
+    columns = [_columns(layout, "base_quaternion"), _columns(layout, "contact_forces", slice(2, None, 3))]
+    columns += [_columns(layout, f, offset=nz) for f in (
+        "base_quaternion", "joint_positions", "base_linear_velocity", "base_angular_velocity", "joint_velocities")]
+    return tuple(int(c) for c in np.unique(np.concatenate(columns)))
+
+
 def _embedded(block, columns, size):
     """The (c, c) ``block`` at the rows and columns ``columns`` (static, increasing) of a
     (size, size) zero matrix, from slices of it and zeros: XLA's CPU scatter into zeros is
@@ -264,6 +283,31 @@ def _transition_inequality(task, z, z_next, theta):
     return _concat(values, constraints.transition_inequality_families(task))
 
 
+def _transition_inequality_jacobian(task, z, z_next, theta):
+    """With the joint torques, the transition inequalities' Jacobian with the torque rows
+    differentiated along the columns they depend on alone (``constraints.FAMILY_FIELDS``: ν_k and
+    q, ν, the contact forces and the thrusts at k+1, and θ), where ``jax.jacfwd`` of the whole
+    function would take all 2 nz + 1 tangents through inverse dynamics. None without the torques."""
+    if not task.joint_torque_limits:
+        return None
+    layout = task.layout
+    plain = dataclasses.replace(task, joint_torque_limits=False)
+    paper = jax.jacfwd(_transition_inequality, argnums=(1, 2, 3))(plain, z, z_next, theta)
+    now_fields, next_fields = constraints.FAMILY_FIELDS[constraints.JOINT_TORQUE]
+    now = np.concatenate([_columns(layout, f) for f in now_fields])
+    following = np.concatenate([_columns(layout, f) for f in next_fields])
+
+    def torques(v, v_next, th):
+        knot, next_knot = _knot(task, z.at[now].set(v)), _knot(task, z_next.at[following].set(v_next))
+        return constraints.transition_inequalities(task, knot, next_knot, th[0])[constraints.JOINT_TORQUE]
+
+    t_now, t_next, t_theta = jax.jacfwd(torques, argnums=(0, 1, 2))(z[now], z_next[following], theta)
+    rows = t_now.shape[0]
+    t_z = jnp.zeros((rows, z.shape[0]), z.dtype).at[:, now].set(t_now)
+    t_znext = jnp.zeros((rows, z.shape[0]), z.dtype).at[:, following].set(t_next)
+    return tuple(jnp.concatenate([p, t]) for p, t in zip(paper, (t_z, t_znext, t_theta)))
+
+
 def _row_supports(task):
     """{group: RowSupport per family}: the columns of z̃_k (and z̃_{k+1}) each family's rows can
     depend on (``constraints.FAMILY_FIELDS``), from the task's static layout."""
@@ -291,6 +335,8 @@ FUNCTIONS = StagewiseFunctions(
     transition_inequality=_transition_inequality,
     path_hessian=_path_hessian,
     transition_curvature_columns=_transition_curvature_columns,
+    transition_through_columns=_transition_through_columns,
+    transition_inequality_jacobian=_transition_inequality_jacobian,
     row_supports=_row_supports,
     path_jacobian=_path_jacobian,
 )
