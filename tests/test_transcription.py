@@ -318,16 +318,22 @@ def test_constraint_curvature_matches_jax_hessian(integration):
         return sum(jnp.sum(getattr(residuals, g) * yi) for g, yi in zip(groups, y))
 
     dense = np.asarray(jax.jit(jax.hessian(weighted))(jnp.concatenate([Z.reshape(-1), theta])))
-    scale = max(1.0, np.abs(dense).max())
     for blocks in variants:
-        D, L, B, C = (np.asarray(x) for x in blocks)
-        for k in range(K):
-            now = slice(k * nz, (k + 1) * nz)
-            assert np.abs(D[k] - dense[now, now]).max() <= 1e-10 * scale
-            assert np.abs(B[k] - dense[now, K * nz :]).max() <= 1e-10 * scale
-            if k:
-                assert np.abs(L[k - 1] - dense[now, (k - 1) * nz : k * nz]).max() <= 1e-10 * scale
-        assert np.abs(C - dense[K * nz :, K * nz :]).max() <= 1e-10 * scale
+        _assert_curvature_blocks_match(blocks, dense, K, nz)
+
+
+def _assert_curvature_blocks_match(blocks, dense, K, nz):
+    """``constraint_curvature``'s (D, L, B, C) equal the dense Hessian over (Z, θ) cut into blocks,
+    to 1e-10 of its largest entry."""
+    D, L, B, C = (np.asarray(x) for x in blocks)
+    scale = max(1.0, np.abs(dense).max())
+    for k in range(K):
+        now = slice(k * nz, (k + 1) * nz)
+        assert np.abs(D[k] - dense[now, now]).max() <= 1e-10 * scale
+        assert np.abs(B[k] - dense[now, K * nz :]).max() <= 1e-10 * scale
+        if k:
+            assert np.abs(L[k - 1] - dense[now, (k - 1) * nz : k * nz]).max() <= 1e-10 * scale
+    assert np.abs(C - dense[K * nz :, K * nz :]).max() <= 1e-10 * scale
 
 
 @pytest.mark.parametrize("columns", [(0, 0), (-1,), (10_000,)])
@@ -489,18 +495,11 @@ def test_joint_torque_family_rows_supports_and_curvature():
     keys = jax.random.split(jax.random.PRNGKey(1))
     y = [jnp.zeros(r.path_equality.shape), jax.random.normal(keys[0], r.transition_equality.shape),
          jnp.zeros(r.path_inequality.shape), jax.random.normal(keys[1], r.transition_inequality.shape)]
-    D, L, Bt, C = (np.asarray(x) for x in jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y))
+    curvature = jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y)
 
     def weighted(w):
         residuals = stagewise.residuals(nlp, w[: K * nz].reshape(K, nz), w[K * nz :])
         return jnp.sum(residuals.transition_equality * y[1]) + jnp.sum(residuals.transition_inequality * y[3])
 
     dense = np.asarray(jax.jit(jax.hessian(weighted))(jnp.concatenate([Z.reshape(-1), theta])))
-    scale = max(1.0, np.abs(dense).max())
-    for k in range(K):
-        now = slice(k * nz, (k + 1) * nz)
-        assert np.abs(D[k] - dense[now, now]).max() <= 1e-10 * scale
-        assert np.abs(Bt[k] - dense[now, K * nz:]).max() <= 1e-10 * scale
-        if k:
-            assert np.abs(L[k - 1] - dense[now, (k - 1) * nz: k * nz]).max() <= 1e-10 * scale
-    assert np.abs(C - dense[K * nz:, K * nz:]).max() <= 1e-10 * scale
+    _assert_curvature_blocks_match(curvature, dense, K, nz)
