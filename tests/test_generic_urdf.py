@@ -63,6 +63,15 @@ def test_structure(tree):
     assert set(model.frame_names) == {"trunk", "arm", "forearm", "tool", "tip", "slider", "wheel", "locked_link"}
     assert np.isinf(np.asarray(model.position_limits[0])).all()  # continuous
     assert float(jaxmm.total_mass(model)) == pytest.approx(6.1, abs=1e-12)
+    np.testing.assert_array_equal(np.asarray(model.effort_limits), [np.inf, 1.0, 1.0, 1.0])  # continuous: none
+
+
+def test_an_effort_of_zero_means_no_limit():
+    """URDFs write effort="0" where no motor limit is given: no limit, not a motor that can
+    exert nothing (which would make every torque bound infeasible)."""
+    xml = TREE.replace('effort="1"', 'effort="0"', 1)  # the first limited joint, the shoulder
+    model = jaxmm.load_robot(xml, joints=["spin", "elbow", "rail", "shoulder"]).model
+    np.testing.assert_array_equal(np.asarray(model.effort_limits), [np.inf, 1.0, 1.0, np.inf])
 
 
 def test_against_pinocchio(tree):

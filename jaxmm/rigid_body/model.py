@@ -113,7 +113,7 @@ class Model:
     position_limits: (n, 2) lower and upper limit of each optimised joint (URDF limits).
     velocity_limits: (n,) URDF velocity limits [rad/s or m/s].
     effort_limits: (n,) URDF effort limits: the largest |torque| [N m] (force [N] for prismatic
-        joints) each optimised joint's motor can exert; inf where the URDF gives none.
+        joints) each optimised joint's motor can exert; inf where the URDF gives none (or 0).
     locked_positions: (n_locked,) values of the locked joints.
     topology: static structure (``Topology``).
     """

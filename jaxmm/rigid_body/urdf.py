@@ -174,7 +174,8 @@ def _add_joint(tree, joint, parent, T_joint):
     lower = -np.inf if joint.type == "continuous" or limit is None or limit.lower is None else limit.lower
     upper = np.inf if joint.type == "continuous" or limit is None or limit.upper is None else limit.upper
     velocity = np.inf if limit is None or limit.velocity is None else limit.velocity
-    effort = np.inf if limit is None or limit.effort is None else limit.effort
+    # URDFs write effort="0" for "not given" (passive or unlisted motors): no limit, not τ = 0.
+    effort = np.inf if limit is None or limit.effort is None or not limit.effort > 0 else limit.effort
     tree["joint_limits"].append((lower, upper, velocity, effort))
 
 
