@@ -125,9 +125,8 @@ def inverse_dynamics(model, q, nu, nu_dot, forces=None, frames=(), gravity=GRAVI
         forces = jnp.asarray(forces, q.dtype)
         if forces.shape != (len(frames), 3):
             raise ValueError(f"forces must have shape ({len(frames)}, 3), one per frame; got {forces.shape}")
-        positions = p_body[np.asarray(topology.frame_body, int)[list(frames)]] + jnp.einsum(
-            "kij,kj->ki", R_body[np.asarray(topology.frame_body, int)[list(frames)]], model.frame_translation[np.asarray(frames, int)]
-        )
+        bodies = np.asarray(topology.frame_body, int)[list(frames)]
+        positions = p_body[bodies] + jnp.einsum("kij,kj->ki", R_body[bodies], model.frame_translation[np.asarray(frames, int)])
         body_force = body_force - _external_wrenches(model, forces, frames, positions)
     subtree_force = support @ body_force  # (nb − 1, 6): the force each joint transmits
     joint_torque = jnp.sum(S * subtree_force, axis=1)[np.asarray(topology.optimised_joints, int)]

@@ -206,10 +206,9 @@ def _transition_curvature_columns(task):
         _columns(layout, "base_angular_velocity", offset=nz), planar + nz,
     ]
     if task.joint_torque_limits:
-        velocity = ("base_linear_velocity", "base_angular_velocity", "joint_velocities")
-        columns += [_columns(layout, f) for f in velocity]
-        columns += [_columns(layout, f, offset=nz) for f in velocity + (
-            "base_quaternion", "joint_positions", "contact_forces", "thrust")]
+        now_fields, next_fields = constraints.FAMILY_FIELDS[constraints.JOINT_TORQUE]
+        columns += [_columns(layout, f) for f in now_fields]
+        columns += [_columns(layout, f, offset=nz) for f in next_fields if f != "base_position"]
     return tuple(int(c) for c in np.unique(np.concatenate(columns)))
 
 
