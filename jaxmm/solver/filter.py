@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmm.solver.options import FILTER_SIZE
+from jaxmm.solver.trees import select
 
 
 @jax.tree_util.register_dataclass
@@ -47,8 +48,7 @@ def augment(f, theta, phi, add):
 
 def reset(f, theta_max, where, resets):
     """``f`` emptied to the envelope theta_max where ``where``, its reset counter set to ``resets``."""
-    fresh = empty(theta_max, resets)
-    return jax.tree.map(lambda a, b: jnp.where(where, a, b), fresh, f)
+    return select(where, empty(theta_max, resets), f)
 
 
 def in_filter(theta, phi, filter_theta, filter_phi):
