@@ -19,13 +19,18 @@ program every solve runs (``programs.advance``, options ``programs.DEFAULT_OPTIO
   call of the solve's programs (``programs.start``, then ``programs.advance`` for one iteration)
   to the end of that first iteration: tracing, lowering, loading from the cache, one iteration.
 
+--codegen adds a third process per revision that compiles the iterations program under XLA's
+per-kernel timers (``compilation.CODEGEN_TIMERS``) and prints the code-generation seconds per
+source file (``compilation.codegen_seconds``): where the compile time goes, which kernel counts
+do not say (identical fusions are compiled once, copies not at all).
+
 --compare REV checks REV out into a temporary git worktree and runs the same two processes with
 that worktree's ``jaxmm`` (REV needs ``jaxmm.programs``, whose ``start``/``advance`` these calls
 use). XLA runs with its default optimisation flags unless $XLA_FLAGS says otherwise (the header
 prints it).
 
 Usage: python benchmarks/compile.py [--scenarios take_off,jumping,walk_to_fly,take_off_and_landing]
-       [--knots N] [--compare REV] [--skip 20] [--iterations 10] [--repeats 3]
+       [--knots N] [--compare REV] [--skip 20] [--iterations 10] [--repeats 3] [--codegen]
 """
 
 import argparse
@@ -59,7 +64,15 @@ guess, started, m, b = programs.prepare(task, tasks.initial_guess(task), program
 options = ip.iteration_options(started)  # what solve_task iterates with
 out = dict(knots=task.n_knots)
 
-if mode == "cold":
+if mode == "codegen":  # XLA's per-kernel timers (stderr) of the iterations program's compile alone
+    lowered = programs.advance.trace(task, programs.start(task, guess, started, m, b), options, int(skip)).lower()
+    sys.stderr.flush()
+    begin = pathlib.Path(texts, "codegen.log").stat().st_size
+    compiled = lowered.compile()
+    sys.stderr.flush()
+    pathlib.Path(texts, "compiled.txt").write_text(compiled.as_text())
+    out.update(log_begin=begin)
+elif mode == "cold":
     t0 = time.perf_counter()
     state = jax.block_until_ready(programs.start(task, guess, started, m, b))
     out.update(start=time.perf_counter() - t0)
@@ -98,7 +111,13 @@ def probe(source, mode, name, args, cache, texts):
     environment = dict(os.environ, PYTHONPATH=path, OPENBLAS_NUM_THREADS="1")
     command = ["taskset", "-c", "0", sys.executable, "-c", PROBE, mode, name, str(args.knots or 0), str(args.skip),
                str(args.iterations), str(args.repeats), str(cache), str(texts)]
-    result = subprocess.run(command, env=environment, capture_output=True, text=True, cwd=source)
+    if mode == "codegen":
+        environment.update(compilation.CODEGEN_TIMERS)
+        with open(pathlib.Path(texts, "codegen.log"), "w") as log:
+            result = subprocess.run(command, env=environment, stdout=subprocess.PIPE, stderr=log, text=True, cwd=source)
+        result.stderr = pathlib.Path(texts, "codegen.log").read_text(errors="replace")
+    else:
+        result = subprocess.run(command, env=environment, capture_output=True, text=True, cwd=source)
     lines = [line for line in result.stdout.splitlines() if line.startswith("PROBE ")]
     if result.returncode or not lines:
         raise RuntimeError(f"the {mode} probe of {name} at {source} failed:\n{result.stderr[-3000:]}")
@@ -116,7 +135,13 @@ def measure(source, label, name, args):
         calls = compilation.custom_calls(pathlib.Path(texts, "lowered.txt").read_text())
         compiled = pathlib.Path(texts, "compiled.txt").read_text()
         size, sources = compilation.program_size(compiled), compilation.kernel_sources(compiled)
-    return dict(cold, **warm, hlo=size, sources=sources, cholesky=calls.get("lapack_dpotrf_ffi", 0),
+        codegen = {}
+        if args.codegen:
+            log(f"{label} {name}: code generation timers")
+            begin = probe(source, "codegen", name, args, pathlib.Path(texts, "cache"), texts)["log_begin"]
+            codegen = compilation.codegen_seconds(pathlib.Path(texts, "codegen.log").read_text(errors="replace")[begin:],
+                                                  pathlib.Path(texts, "compiled.txt").read_text())
+    return dict(cold, **warm, hlo=size, sources=sources, codegen=codegen, cholesky=calls.get("lapack_dpotrf_ffi", 0),
                 triangular=calls.get("lapack_dtrsm_ffi", 0))
 
 
@@ -134,6 +159,8 @@ def main():
     parser.add_argument("--skip", type=int, default=20)
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--codegen", action="store_true",
+                        help="a third process per revision: XLA's code-generation seconds per source file")
     args = parser.parse_args()
     names = [s for s in args.scenarios.split(",") if s]
     unknown = sorted(set(names) - set(SCENARIOS))
@@ -174,10 +201,19 @@ def main():
     if len(sources) > 1:
         print(f"\nRatios: {sources[0][0]} / {sources[1][0]}.")
     for name, results in by_source:
-        print(f"\n{name}: kernels by the source file of their innermost line (compilation.kernel_sources)\n")
-        files = sorted({f for _, r in results for f in r["sources"]}, key=lambda f: -results[0][1]["sources"].get(f, 0))
-        print(render(("source",) + tuple(label for label, _ in results),
-                     [(f,) + tuple(f"{r['sources'].get(f, 0):,}" for _, r in results) for f in files]))
+        per_source(f"{name}: kernels by the source file of their innermost line (compilation.kernel_sources)",
+                   results, "sources", lambda v: f"{v:,}")
+        if args.codegen:
+            per_source(f"{name}: XLA's code-generation seconds by source file, one core (compilation.codegen_seconds)",
+                       results, "codegen", lambda v: f"{v:.2f}")
+
+
+def per_source(title, results, key, fmt):
+    """Print a table of results[...][key] ({source file: value}) per revision, largest first."""
+    print(f"\n{title}\n")
+    files = sorted({f for _, r in results for f in r[key]}, key=lambda f: -results[0][1][key].get(f, 0))
+    print(render(("source",) + tuple(label for label, _ in results),
+                 [(f,) + tuple(fmt(r[key].get(f, 0)) for _, r in results) for f in files]))
 
 
 if __name__ == "__main__":

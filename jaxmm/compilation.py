@@ -426,6 +426,37 @@ def kernel_sources(compiled_text):
     return dict(counts)
 
 
+# The environment under which XLA's CPU compiler logs the time of each kernel's MLIR emission and
+# LLVM compilation (read by ``codegen_seconds``); it must be set before jaxlib is loaded.
+CODEGEN_TIMERS = {"TF_CPP_MIN_LOG_LEVEL": "0", "TF_CPP_VMODULE": "fusion_compiler=1,ir_compiler=1"}
+_TIMER = re.compile(r"Compiled (?:MLIR|LLVM) module: (\S+) time: ([\d.]+) (s|ms|us)\b")
+_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+
+
+def codegen_seconds(log_text, compiled_text):
+    """{source module: seconds} of XLA's code generation for a compiled program: the per-kernel
+    timers its CPU compiler logs under ``CODEGEN_TIMERS`` (``log_text``), each kernel named
+    after the HLO instruction it compiles, attributed as ``kernel_sources`` attributes kernels
+    (the innermost source line of that instruction in ``compiled_text``). A module the program
+    does not name counts under "(unattributed)": a kernel of another program compiled in the
+    same process, or the shared modules ("…_part_00") into which XLA compiles kernels when its
+    fusion emitters are off (``xla_cpu_use_fusion_emitters=false``; by default they are on).
+    Kernel counts mislead here: XLA reuses one compiled kernel for identical fusions (not for
+    identical dots), a buffer copy costs nothing, and every generated kernel costs ≈ 20 ms
+    however small."""
+    frames = _source_files(compiled_text)
+    where = {}
+    for line, _ in _instructions(compiled_text):
+        name = re.match(r"\s*(?:ROOT )?%?([\w.\-]+) = ", line).group(1)
+        frame = re.search(r"stack_frame_id=(\d+)", line)
+        where[name] = _module_name(frames.get(int(frame.group(1))) if frame else None)
+    seconds = collections.Counter()
+    for match in _TIMER.finditer(log_text):
+        name = re.sub(r"^(?:__compute_module_)+|(?:_elemental)?_kernel_module$", "", match.group(1))
+        seconds[where.get(name, "(unattributed)")] += float(match.group(2)) * _UNITS[match.group(3)]
+    return dict(seconds)
+
+
 def _module_name(path):
     """``jaxmm/…`` for a file of the package, the base name for another, "(no source)" for None."""
     if path is None:

@@ -6,6 +6,9 @@ exactly those of one ``linalg.factor`` and one ``linalg.solve``. A change that i
 copy of either makes these counts grow."""
 
 import dataclasses
+import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -72,3 +75,22 @@ def test_the_kernels_are_attributed_to_their_source_files():
     sources = compilation.kernel_sources(text)
     assert sum(sources.values()) == compilation.program_size(text)[1]
     assert sources.get("jaxmm/rigid_body/so3.py", 0) >= 1
+
+
+def test_code_generation_seconds_are_attributed_to_their_source_files(tmp_path):
+    """XLA's per-kernel timers, logged by a fresh process under ``CODEGEN_TIMERS`` while it
+    compiles a vmapped quaternion exponential with XLA's default flags (fusion emitters on: one
+    module per kernel), add up to seconds under ``so3.py``; a timer of a module the program
+    does not name counts under "(unattributed)"."""
+    script = ("import sys, jax, jax.numpy as jnp, jaxmm; from jaxmm.rigid_body import so3; "
+              "text = jax.jit(jax.vmap(so3.quaternion_exp)).lower(jnp.ones((4, 3))).compile().as_text(); "
+              "open(sys.argv[1], 'w').write(text)")
+    compiled = tmp_path / "compiled.txt"
+    environment = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "XLA_FLAGS")}
+    result = subprocess.run([sys.executable, "-c", script, str(compiled)], capture_output=True, text=True,
+                            env=dict(environment, **compilation.CODEGEN_TIMERS))
+    assert result.returncode == 0, result.stderr[-2000:]
+    log = result.stderr + "Compiled LLVM module: __compute_module_not_in_this_program_kernel_module time: 2.5 ms\n"
+    seconds = compilation.codegen_seconds(log, compiled.read_text())
+    assert seconds.get("jaxmm/rigid_body/so3.py", 0.0) > 0.0
+    assert seconds["(unattributed)"] >= 2.5e-3 and all(v >= 0.0 for v in seconds.values())
