@@ -99,7 +99,10 @@ def test_a_solve_in_slices_is_the_one_call_solve(whole, monkeypatch):
     assert ip.Status(int(sliced.status)) is ip.Status.CONVERGED
     assert int(sliced.iterations) == int(whole.iterations) == len(slices)
     np.testing.assert_allclose(np.asarray(sliced.Z), np.asarray(whole.Z), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(sliced.history), np.asarray(whole.history), rtol=1e-10, equal_nan=True)
+    # The slices and the one call are two compiled programs whose fusions round differently: the
+    # history's violations and stationarities agree to rounding of their own size, not bit for bit.
+    np.testing.assert_allclose(np.asarray(sliced.history), np.asarray(whole.history), rtol=1e-8, atol=1e-12,
+                               equal_nan=True)
 
 
 def test_the_iterations_ignore_the_settings_only_the_start_reads():
