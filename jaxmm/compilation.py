@@ -420,10 +420,15 @@ def kernel_sources(compiled_text):
     counts = collections.Counter()
     for line, kernel in _instructions(compiled_text):
         if kernel:
-            frame = re.search(r"stack_frame_id=(\d+)", line)
-            path = frames.get(int(frame.group(1))) if frame else None
-            counts[_module_name(path)] += 1
+            counts[_source_of(line, frames)] += 1
     return dict(counts)
+
+
+def _source_of(line, frames):
+    """The source module (``_module_name``) of an HLO instruction line, from its stack frame
+    and the program's ``_source_files`` table ``frames``."""
+    frame = re.search(r"stack_frame_id=(\d+)", line)
+    return _module_name(frames.get(int(frame.group(1))) if frame else None)
 
 
 # The environment under which XLA's CPU compiler logs the time of each kernel's MLIR emission and
@@ -445,11 +450,8 @@ def codegen_seconds(log_text, compiled_text):
     identical dots), a buffer copy costs nothing, and every generated kernel costs ≈ 20 ms
     however small."""
     frames = _source_files(compiled_text)
-    where = {}
-    for line, _ in _instructions(compiled_text):
-        name = re.match(r"\s*(?:ROOT )?%?([\w.\-]+) = ", line).group(1)
-        frame = re.search(r"stack_frame_id=(\d+)", line)
-        where[name] = _module_name(frames.get(int(frame.group(1))) if frame else None)
+    where = {re.match(r"\s*(?:ROOT )?%?([\w.\-]+) = ", line).group(1): _source_of(line, frames)
+             for line, _ in _instructions(compiled_text)}
     seconds = collections.Counter()
     for match in _TIMER.finditer(log_text):
         name = re.sub(r"^(?:__compute_module_)+|(?:_elemental)?_kernel_module$", "", match.group(1))
