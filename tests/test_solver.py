@@ -244,7 +244,7 @@ def test_slacks_start_at_the_rows_of_the_pushed_guess_and_every_slack_setting_re
     solutions = []
     for slack_start, ipopt_slacks in (("guess", False), ("pushed", False), ("pushed", True)):
         options = dataclasses.replace(OPTIONS, slack_start=slack_start, ipopt_slacks=ipopt_slacks)
-        state = ip.start(nlp, Z0, jnp.zeros(1), options)
+        state = advance(nlp, ip.start(nlp, Z0, jnp.zeros(1), options), options, 0)  # start and first pass
         P = state.iterate.P
         rows_at_start = stagewise.residuals(nlp, P[0], P[1]).path_inequality * state.scaling[1][2]
         assert np.allclose(P[2], rows_at_start, rtol=1e-12) == (slack_start == "pushed")
@@ -257,30 +257,36 @@ def test_slacks_start_at_the_rows_of_the_pushed_guess_and_every_slack_setting_re
         ip.Options(slack_start="pushed inside")
 
 
-def test_the_first_pass_fixes_the_scaling_at_the_starting_point():
-    """Without a given scaling, ``start`` leaves the state in unit scaling (``PendingScaling``) and
-    ``advance``'s first pass computes IPOPT's gradient-based scaling from the derivatives at the
-    starting point (the guess pushed inside its bounds), with the start's own ``max_gradient``
-    and ``bound_push``, counting no iteration: the iterates are those of a start given that
-    scaling, even when ``advance`` runs with ``iteration_options``."""
+def test_the_first_pass_completes_the_start_at_the_starting_point():
+    """``start`` evaluates nothing of the NLP: its state is unfinished (``FirstPass``), in unit
+    scaling without a given one. ``advance``'s first pass, counting no iteration and made even
+    when ``advance`` is asked for none, evaluates the residuals at the starting point (the guess
+    pushed inside its bounds) and computes IPOPT's gradient-based scaling from the derivatives
+    there, with the start's own ``max_gradient`` and ``bound_push``: the iterates are those of a
+    start given that scaling, even when ``advance`` runs with ``iteration_options``."""
     nlp = integrator(CAPPED, u_max=0.5, energy_cap=1.0)
     Z0 = jnp.zeros((K, 3)).at[:, 2].set(0.8)
     options = dataclasses.replace(OPTIONS, max_gradient=0.5, bound_push=0.05)
     state = ip.start(nlp, Z0, jnp.zeros(1), options)
-    assert bool(state.pending_scaling.pending) and float(state.scaling[0]) == 1.0
+    assert bool(state.first_pass.pending) and bool(state.first_pass.scale) and float(state.scaling[0]) == 1.0
     P = state.iterate.P
     factors = scaling.scaling(stagewise.blocks(nlp, P[0], P[1]), options.max_gradient)
     assert float(factors[0]) < 1.0 and min(float(jnp.min(f, initial=1.0)) for f in factors[1]) < 1.0  # it matters
     given = ip.start(nlp, Z0, jnp.zeros(1), options, scaling=factors)
-    assert not bool(given.pending_scaling.pending)
+    assert bool(given.first_pass.pending) and not bool(given.first_pass.scale)
     iterating = ip.iteration_options(options)
     ours, theirs = advance(nlp, state, iterating, 3), advance(nlp, given, iterating, 3)
-    assert int(ours.iterations) == 3 and not bool(ours.pending_scaling.pending)
+    assert int(ours.iterations) == 3 and not bool(ours.first_pass.pending)
     for a, b in zip(jax.tree.leaves((ours.scaling, ours.iterate, ours.history[:3])),
                     jax.tree.leaves((factors, theirs.iterate, theirs.history[:3]))):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
-    unchanged = advance(nlp, state, iterating, 0)  # no pass at all: still pending, nothing counted
-    assert bool(unchanged.pending_scaling.pending) and int(unchanged.iterations) == 0
+    begun = advance(nlp, state, iterating, 0)  # the first pass alone
+    assert not bool(begun.first_pass.pending) and int(begun.iterations) == 0
+    at_start = stagewise.residuals(nlp, P[0], P[1])
+    for a, b in zip(jax.tree.leaves((begun.residuals, begun.scaling)), jax.tree.leaves((at_start, factors))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(float(begun.violation), float(ip.violation(nlp, P[0], P[1])[0]), rtol=1e-12)
+    assert bool(jnp.all(jnp.isnan(begun.history)))
 
 
 # Per-knot Rosenbrock (1 − x)² + 100 (y − x²)², with a different box on x at each knot.

@@ -35,7 +35,7 @@ from jaxmm.solver.options import (EQUALITIES, GROUPS, HISTORY_COLUMNS, INEQUALIT
                                   SLACK_STARTS, SOC_STEPS, Options, Status, iteration_options)
 from jaxmm.solver.scaling import outside, scaled_problem, violation  # noqa: F401
 from jaxmm.solver.scaling import scaling as gradient_scaling
-from jaxmm.solver.state import Counters, Iterate, Multipliers, PendingScaling, Solution, SoftStep, State  # noqa: F401
+from jaxmm.solver.state import Counters, FirstPass, Iterate, Multipliers, Solution, SoftStep, State  # noqa: F401
 from jaxmm.solver.trees import all_finite, dot, l1, max_abs, select, tmap
 
 
@@ -43,20 +43,21 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     """The solver's ``State`` before its first iteration from (Z0 (K, nz), θ0 (ng,)), pushed
     inside the bounds; the constraint multipliers warm-started with ``multipliers`` (a
     ``Multipliers``), the bound multipliers with ``bound_multipliers`` (both from a previous
-    ``Solution``); ``scaling``: a previous ``Solution.scaling`` to solve in. Without one the state
-    is in unit scaling, and ``advance``'s first pass computes IPOPT's gradient-based scaling at the
-    starting point from the derivatives it evaluates there (``PendingScaling``), so that the
-    NLP's derivatives are compiled once, in the iteration."""
+    ``Solution``); ``scaling``: a previous ``Solution.scaling`` to solve in. The state is
+    unfinished (``FirstPass``): ``advance``'s first pass evaluates the NLP at the starting point
+    and, without a given scaling, computes IPOPT's gradient-based scaling there from the
+    derivatives it evaluates, so that the NLP's functions and derivatives are compiled once, in
+    the iteration. Only ``slack_start="guess"`` evaluates the NLP here (its rows at the guess)."""
     dtype = Z0.dtype
     b = barrier.bounds(nlp, (1.0, 1.0))  # (Z, θ)'s bounds do not depend on the scaling
-    pushed = options.slack_start == "pushed"
-    if pushed:  # the rows at the point the solve starts from, as IPOPT's slacks
-        Z0, theta0 = barrier.interior((Z0, theta0), b, options.bound_push)
-    r0 = stagewise.residuals(nlp, Z0, theta0)
+    shapes = jax.eval_shape(stagewise.residuals, nlp, Z0, theta0)
+    r0 = jax.tree.map(lambda x: jnp.zeros(x.shape, dtype), shapes)  # the first pass evaluates them
+    rows_given = options.slack_start == "guess"
     rows0 = (r0.path_inequality, r0.transition_inequality)
-    if not pushed:
-        Z0, theta0 = barrier.interior((Z0, theta0), b, options.bound_push)
-        r0 = stagewise.residuals(nlp, Z0, theta0)
+    if rows_given:
+        at_guess = stagewise.residuals(nlp, Z0, theta0)
+        rows0 = (at_guess.path_inequality, at_guess.transition_inequality)
+    Z0, theta0 = barrier.interior((Z0, theta0), b, options.bound_push)
     groups = tuple(getattr(r0, g) for g in GROUPS)
     factors = ((jnp.ones((), dtype), tuple(jnp.ones_like(g) for g in groups)) if scaling is None
                else (jnp.asarray(scaling[0], dtype), tuple(jnp.asarray(f, dtype) for f in scaling[1])))
@@ -65,21 +66,19 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     P0 = (Z0, theta0) + tuple(jnp.zeros_like(r) for r in rows0)
     ones = tuple(jnp.ones_like(p) for p in P0)
     zl0, zu0 = (ones, ones) if bound_multipliers is None else bound_multipliers
-    v0, _ = violation(nlp, Z0, theta0, r0)
     zero, real = jnp.asarray(0), lambda x: jnp.asarray(x, dtype)
     state = State(
         iterate=Iterate(P0, y0, zl0, zu0), residuals=r0, mu=real(options.barrier0),
         regularisation=real(0.0), forced=real(0.0), filter=filters.empty(real(1e4)),
-        counters=Counters(soft_steps=zero, rejections=zero, short_steps=zero, short_violation=v0,
+        counters=Counters(soft_steps=zero, rejections=zero, short_steps=zero, short_violation=real(0.0),
                           restoration_iterations=zero, barrier_updates=zero),
-        iterations=zero, status=jnp.asarray(int(Status.RUNNING)), violation=v0,
+        iterations=zero, status=jnp.asarray(int(Status.RUNNING)), violation=real(0.0),
         stationarity=real(jnp.inf), history=jnp.full((options.max_iterations, len(HISTORY_COLUMNS)), jnp.nan, dtype),
         scaling=factors, theta_max=real(1e4), theta_min=real(1e-4), restoring=jnp.asarray(False),
         restoration_theta=real(0.0), soft=SoftStep(jnp.asarray(False), real(0.0)),
-        pending_scaling=PendingScaling(jnp.asarray(scaling is None), rows0, real(options.bound_push),
-                                       real(options.max_gradient)),
+        first_pass=FirstPass(jnp.asarray(True), jnp.asarray(scaling is None), rows0, jnp.asarray(rows_given),
+                             real(options.bound_push), real(options.max_gradient)),
     )
-    state = _in_scaling(nlp, state, factors, y0)
     state = dataclasses.replace(state, soft=SoftStep(state.soft.pending, state.soft.reference, state))
     # No weak types: a cold start (θ0 from Python floats) and a warm one must give the same avals,
     # so that one compiled ``advance`` serves both.
@@ -87,16 +86,17 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
 
 
 def _in_scaling(nlp, state, factors, y):
-    """``state`` (at the starting point) in the scaling ``factors`` (cost factor, per-row
-    factors): the slacks at the rows of ``state.pending_scaling`` pushed inside their scaled
-    bounds (the primal (Z, θ) is inside already, and the push leaves it), the multipliers ``y``
-    (the NLP's units) scaled, the bound multipliers kept where there is a bound, and the filter's
-    envelope from the scaled residuals (IPOPT's θ_max = 10⁴ max(1, θ(x₀)), θ_min = 10⁻⁴ of it)."""
+    """``state`` (at the starting point, with its residuals there) in the scaling ``factors``
+    (cost factor, per-row factors): the slacks at the rows of ``state.first_pass`` pushed inside
+    their scaled bounds (the primal (Z, θ) is inside already, and the push leaves it), the
+    multipliers ``y`` (the NLP's units) scaled, the bound multipliers kept where there is a
+    bound, and the filter's envelope from the scaled residuals (IPOPT's θ_max = 10⁴ max(1, θ(x₀)),
+    θ_min = 10⁻⁴ of it)."""
     problem = scaled_problem(nlp, factors)
     cost_scale, row_scale, b = problem.cost_scale, problem.row_scale, problem.bounds
-    it, start_rows = state.iterate, state.pending_scaling.rows
+    it, start_rows = state.iterate, state.first_pass.rows
     P = barrier.interior((it.P[0], it.P[1], start_rows[0] * row_scale[2], start_rows[1] * row_scale[3]), b,
-                         state.pending_scaling.bound_push)
+                         state.first_pass.bound_push)
     y = tuple(cost_scale * v / s for v, s in zip(y, row_scale))
     zl = tmap(lambda v, m: jnp.where(m, v, 0.0), it.zl, b.has_lower)
     zu = tmap(lambda v, m: jnp.where(m, v, 0.0), it.zu, b.has_upper)
@@ -303,26 +303,32 @@ def iteration(ctx, state, judge_only=False):
     refuse = state.soft.pending & ~(error <= 0.9999 * state.soft.reference)
     # Both outcomes are computed and one is selected: a conditional around the iteration would
     # take the blocks (megabytes) as operands, which XLA copies into its branch.
-    judge_only, pending = jnp.asarray(judge_only), state.pending_scaling.pending
+    judge_only, pending = jnp.asarray(judge_only), state.first_pass.pending
     kept = dataclasses.replace(state, soft=SoftStep(jnp.zeros_like(state.soft.pending), state.soft.reference,
                                                     state.soft.refused))
-    stepped = _newton_iteration(ctx, state, B, J, c, dl, du, o, ~refuse & ~judge_only & ~pending)
+    stepped, evaluated = _newton_iteration(ctx, state, B, J, c, dl, du, o, ~refuse & ~judge_only & ~pending)
     after = select(refuse, _refused(ctx, state, refuse), select(judge_only | pending, kept, stepped))
-    return _scaling_pass(ctx, state, B, after)
+    return _first_pass(ctx, state, B, after, evaluated)
 
 
-def _scaling_pass(ctx, state, B, after):
-    """``after`` (the iteration's new state), unless ``state``'s scaling is pending
-    (``PendingScaling``): then this pass only fixes it, IPOPT's gradient-based scaling from the
-    blocks B at the starting point, and counts no iteration (``after`` is ``state`` there). Only
-    the leaves the scaling changes are selected."""
-    pending = state.pending_scaling.pending
-    scaled = _in_scaling(ctx.problem.nlp, state, gradient_scaling(B, state.pending_scaling.max_gradient),
-                         state.iterate.y)
-    fields = ("iterate", "scaling", "filter", "theta_max", "theta_min")
-    chosen = select(pending, tuple(getattr(scaled, f) for f in fields), tuple(getattr(after, f) for f in fields))
-    return dataclasses.replace(after, **dict(zip(fields, chosen)), pending_scaling=dataclasses.replace(
-        after.pending_scaling, pending=jnp.zeros_like(pending)))
+def _first_pass(ctx, state, B, after, r0):
+    """``after`` (the iteration's new state), unless ``state`` is the unfinished state of
+    ``start`` (``FirstPass``): then this pass only completes it, counting no iteration, from the
+    residuals r0 that the line search evaluated at the starting point and, without a given
+    scaling, IPOPT's gradient-based scaling from the blocks B there. Only the leaves that the
+    pass sets are selected."""
+    first, nlp = state.first_pass, ctx.problem.nlp
+    v0, _ = violation(nlp, state.iterate.P[0], state.iterate.P[1], r0)
+    rows = select(first.rows_given, first.rows, (r0.path_inequality, r0.transition_inequality))
+    begun = dataclasses.replace(state, residuals=r0, violation=v0,
+                                counters=dataclasses.replace(state.counters, short_violation=v0),
+                                first_pass=dataclasses.replace(first, rows=rows))
+    factors = select(first.scale, gradient_scaling(B, first.max_gradient), state.scaling)
+    scaled = _in_scaling(nlp, begun, factors, state.iterate.y)
+    fields = ("iterate", "residuals", "violation", "counters", "scaling", "filter", "theta_max", "theta_min")
+    chosen = select(first.pending, tuple(getattr(scaled, f) for f in fields), tuple(getattr(after, f) for f in fields))
+    return dataclasses.replace(after, **dict(zip(fields, chosen)), first_pass=dataclasses.replace(
+        after.first_pass, pending=jnp.zeros_like(first.pending)))
 
 
 def _report(ctx, when, k, row):
@@ -342,8 +348,9 @@ def _refused(ctx, state, report):
 
 def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
     """The rest of ``iteration`` from the blocks B, rows J, residuals c, distances (dl, du) and
-    ``Optimality`` o at the iterate; its history row is shown to the progress callback where
-    ``report``."""
+    ``Optimality`` o at the iterate: (the new ``State``, the NLP's residuals at the line search's
+    last trial, which in the first pass (``FirstPass``) is the iterate itself); its history row is
+    shown to the progress callback where ``report``."""
     problem, options, b = ctx.problem, ctx.options, ctx.problem.bounds
     it, restoring = state.iterate, state.restoring
     P, zl, zu = it.P, it.zl, it.zu
@@ -368,7 +375,7 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
     delta_w, chol, factored, work = newton.factor(
         blocks_at, diagonal_at, jnp.where(restoring, 0.0, state.forced),
         lambda delta: newton.next_regularisation(delta, state.regularisation, options.regularisation_decrease),
-        ~restoring & ~state.pending_scaling.pending, 1e40, ctx.K, ctx.coupled)  # one attempt in the scaling pass
+        ~restoring & ~state.first_pass.pending, 1e40, ctx.K, ctx.coupled)  # one attempt in the first pass
     system = system_at(delta_w)
     limit = jnp.where(restoring, 1, 1 + REFINEMENT_STEPS)
 
@@ -398,9 +405,10 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
         return (jnp.where(restoring, sufficient, accepted), ~restoring & f_type, ~restoring & by_filter)
 
     soft_steps = jnp.where(reset, 0, state.counters.soft_steps)
+    pending = state.first_pass.pending
     search = line_search.search(P, c, direction, problem.evaluate, judge, slope_of, l1, restoring,
-                                factored & ~crawling & ~state.pending_scaling.pending, options.line_search_steps,
-                                ~restoring & (soft_steps < options.max_soft_steps))
+                                factored & ~crawling & ~pending, options.line_search_steps,
+                                ~restoring & (soft_steps < options.max_soft_steps), evaluate_only=pending)
     step = Step(c=c, f_now=cs * state.residuals.cost, dl=dl, du=du, optimality=o, mu=mu, updates=updates,
                 mu_step=mu_step, filter=filter_now, soft_steps=soft_steps,
                 crawling=crawling, converged=converged, delta_w=delta_w, factored=factored, work=work, zeta=zeta,
@@ -418,7 +426,7 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
     new = dataclasses.replace(new, soft=SoftStep(soft & finite, _soft_reference(ctx, state, step), refused))
     new = select(finite, new, state)
     _report(ctx, report, k, new.history[k])  # the row the history keeps for this iteration
-    return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)), iterations=k + 1)
+    return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)), iterations=k + 1), search.last.r
 
 
 def _primal_dual_error(dual, c, complementarity):
@@ -525,9 +533,9 @@ def advance(nlp, state, options=Options(), until=None):
     limit = options.max_iterations if until is None else jnp.minimum(until, options.max_iterations)
 
     def running(s):
-        return (s.status == int(Status.RUNNING)) & ((s.iterations < limit) | s.soft.pending)
+        return (s.status == int(Status.RUNNING)) & ((s.iterations < limit) | s.soft.pending | s.first_pass.pending)
 
-    # The context is rebuilt from each state's scaling: the first pass may fix it (``PendingScaling``).
+    # The context is rebuilt from each state's scaling: the first pass may fix it (``FirstPass``).
     return jax.lax.while_loop(running, lambda s: iteration(context(nlp, s, options), s, s.iterations >= limit), state)
 
 

@@ -3,7 +3,9 @@ trials: the Newton step at its fraction-to-boundary length, then second-order co
 (when the full step raised the infeasibility), then backtracking; and, when every trial was
 turned down, the soft-restoration point (the Newton step at its fraction-to-boundary length in
 the primal and the dual variables, IPOPT's soft restoration), evaluated by the same loop so that
-its residuals come with it.
+its residuals come with it. The same loop evaluates the starting point of a solve (phase
+EVALUATE: one trial at P itself, judged by nobody), so that no other call site of the NLP's
+functions is compiled.
 
 Each pass of the loop computes at most one direction (the Newton step, or a correction: the
 same ``direction`` call, its right-hand side chosen by the phase) and evaluates one trial point,
@@ -19,7 +21,7 @@ import jax.numpy as jnp
 from jaxmm.solver.options import SOC_STEPS
 from jaxmm.solver.trees import select, tmap
 
-NEWTON, CORRECTION, BACKTRACK, SOFT, DONE = 0, 1, 2, 3, 4
+NEWTON, CORRECTION, BACKTRACK, SOFT, DONE, EVALUATE = 0, 1, 2, 3, 4, 5
 
 
 @jax.tree_util.register_dataclass
@@ -56,7 +58,7 @@ class Trial:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Search:
-    """The loop's state: phase (NEWTON, CORRECTION, BACKTRACK, SOFT, DONE); newton, the Newton
+    """The loop's state: phase (NEWTON, CORRECTION, BACKTRACK, SOFT, DONE, EVALUATE); newton, the Newton
     direction; correction, the last second-order correction and its right-hand side c_soc (the
     accumulated residuals, eq. 27 of Wächter & Biegler) with its step length alpha_soc;
     corrections, backtracks: their counts; slope, the directional derivative of the merit along
@@ -99,7 +101,7 @@ def filter_acceptance(alpha, theta, phi, theta0, phi0, slope, theta_min, in_filt
     return sufficient & ~filtered, switching & armijo, sufficient & filtered
 
 
-def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, start, steps, soft):
+def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, start, steps, soft, evaluate_only=False):
     """The trials of one iteration from P (scaled residuals c there).
 
     direction(c_q, needed) → ``Direction`` for the constraint right-hand side c_q (a zero step
@@ -107,13 +109,15 @@ def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, star
     slope; judge(α_judge, α, trial, θ, slope) → (accepted, f_type, by the filter alone);
     theta_of(c) → ‖c‖₁; restoring: no corrections (the restoration phase); start: whether to
     search at all (the Newton matrix factored); steps: most backtracking halvings; soft: whether
-    the soft-restoration point P + min(α_max, α_z) dP follows when every trial is turned down.
+    the soft-restoration point P + min(α_max, α_z) dP follows when every trial is turned down;
+    evaluate_only (where ``start`` is false): one trial at P itself, not accepted, so that
+    ``last`` holds the residuals at P (the first pass of a solve, ``state.FirstPass``).
     Returns the final ``Search``."""
     theta0 = theta_of(c)
 
     def body(s):
         first, correcting, backtracking = s.phase == NEWTON, s.phase == CORRECTION, s.phase == BACKTRACK
-        softening = s.phase == SOFT
+        softening, evaluating = s.phase == SOFT, s.phase == EVALUATE
         c_next = tmap(lambda a, b: s.alpha_soc * a + b, s.c_soc, s.last.c)
         d = direction(select(first, c, c_next), first | correcting)
         newton = select(first, d, s.newton)
@@ -121,11 +125,12 @@ def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, star
         alpha = jnp.where(backtracking, 0.5 * s.last.alpha,
                           jnp.where(softening, jnp.minimum(s.newton.alpha_max, s.newton.alpha_z), d.alpha_max))
         dP = select(backtracking | softening, s.newton.dP, d.dP)
-        Pt = tmap(lambda p, v: p + alpha * v, P, dP)
+        Pt = select(evaluating, P, tmap(lambda p, v: p + alpha * v, P, dP))
         f, ct, rt = evaluate(Pt)
         theta = theta_of(ct)
         ok, f_type, by_filter = judge(jnp.where(backtracking, alpha, newton.alpha_max), alpha, (Pt, f, ct), theta, slope)
-        ok, f_type, by_filter = ok & ~softening, f_type & ~softening, by_filter & ~softening
+        judged = ~softening & ~evaluating
+        ok, f_type, by_filter = ok & judged, f_type & judged, by_filter & judged
         # Second-order corrections (IPOPT's max_soc, κ_soc = 0.99): when the full step raises the
         # infeasibility, and again while each correction cuts it by κ_soc.
         to_correction = ~ok & ~restoring & ((first & (theta >= theta0))
@@ -133,6 +138,7 @@ def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, star
         to_backtrack = ~ok & ~to_correction & ~softening & jnp.where(backtracking, s.backtracks + 1 < steps, steps > 0)
         to_soft = ~ok & ~to_correction & ~to_backtrack & ~softening & soft
         phase = jnp.where(to_correction, CORRECTION, jnp.where(to_backtrack, BACKTRACK, jnp.where(to_soft, SOFT, DONE)))
+        phase = jnp.where(evaluating, DONE, phase)
         last = Trial(Pt, f, ct, rt, jnp.where(to_backtrack & ~backtracking, newton.alpha_max, alpha))
         return Search(
             phase=phase, newton=newton, correction=select(correcting, d, s.correction),
@@ -147,7 +153,7 @@ def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, star
     f0, _, r0 = jax.eval_shape(evaluate, P)
     zero = jnp.zeros((), theta0.dtype)
     initial = Search(
-        phase=jnp.where(start, NEWTON, DONE), newton=blank, correction=blank, c_soc=c, alpha_soc=zero,
+        phase=jnp.where(start, NEWTON, jnp.where(evaluate_only, EVALUATE, DONE)), newton=blank, correction=blank, c_soc=c, alpha_soc=zero,
         corrections=jnp.asarray(0), backtracks=jnp.asarray(0), slope=zero,
         last=Trial(P, jnp.zeros(f0.shape, f0.dtype), c, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), r0), zero),
         theta_last=theta0, accepted=jnp.asarray(False), f_type=jnp.asarray(False), corrected=jnp.asarray(False),

@@ -143,7 +143,7 @@ class Options:
 def iteration_options(options):
     """``options`` with the settings only ``start`` reads (barrier0, bound_push, max_gradient,
     slack_start) at their defaults; the state carries bound_push and max_gradient as data for
-    ``advance``'s scaling pass (``state.PendingScaling``). ``advance`` gives the same result with
+    ``advance``'s first pass (``state.FirstPass``). ``advance`` gives the same result with
     either (tested), so one compiled ``advance`` (options are static) serves every start that
     differs only there: a warm start's barrier settings, say."""
     return dataclasses.replace(options, barrier0=Options.barrier0, bound_push=Options.bound_push,

@@ -103,16 +103,23 @@ class SoftStep:
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class PendingScaling:
-    """What the first pass of ``advance`` needs to fix the scaling of a state that ``start`` left
-    in unit scaling (no scaling given): IPOPT's gradient-based scaling comes from the NLP's
-    derivatives at the starting point, which that pass evaluates at the iteration's own call site.
-    pending: whether the scaling is still to be fixed; rows: the inequality rows where the
-    slacks start, in the NLP's units ((K, mg), (K − 1, mh)); bound_push, max_gradient: the
+class FirstPass:
+    """What the first pass of ``advance`` completes of a state that ``start`` left unfinished.
+    ``start`` evaluates nothing of the NLP (it would compile the NLP's functions a second time):
+    the first pass evaluates the residuals at the starting point at the line search's call site
+    and, without a given scaling, IPOPT's gradient-based scaling from the derivatives that the
+    iteration evaluates there; then it puts the slacks, multipliers and filter envelope in that
+    scaling (``interior_point._in_scaling``). pending: whether that pass is still to run; scale:
+    whether it computes the scaling (False: ``start`` was given one, held in ``State.scaling``);
+    rows, rows_given: the inequality rows where the slacks start ((K, mg), (K − 1, mh), the
+    NLP's units) when ``start`` evaluated them (``slack_start="guess"``; otherwise the rows
+    at the starting point, which the pass evaluates); bound_push, max_gradient: the
     ``Options`` of ``start`` (data, so that one compiled ``advance`` serves every start)."""
 
     pending: jax.Array
+    scale: jax.Array
     rows: tuple
+    rows_given: jax.Array
     bound_push: jax.Array
     max_gradient: jax.Array
 
@@ -131,7 +138,7 @@ class State:
     theta_min: the infeasibility below which Armijo steps on the barrier function may be taken
     (both from the starting point); restoring: in the restoration phase; restoration_theta: the
     infeasibility where it started; soft: the ``SoftStep`` whose test is still to be made;
-    pending_scaling: the ``PendingScaling`` of a start without a given scaling."""
+    first_pass: the ``FirstPass`` that completes the state of ``start``."""
 
     iterate: Iterate
     residuals: object
@@ -151,4 +158,4 @@ class State:
     restoring: jax.Array
     restoration_theta: jax.Array
     soft: SoftStep
-    pending_scaling: PendingScaling
+    first_pass: FirstPass
