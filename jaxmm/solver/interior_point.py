@@ -406,7 +406,7 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
 
     soft_steps = jnp.where(reset, 0, state.counters.soft_steps)
     pending = state.first_pass.pending
-    search = line_search.search(P, c, direction, problem.evaluate, judge, slope_of, l1, restoring,
+    search = line_search.search(P, c, state.residuals, direction, problem.evaluate, judge, slope_of, l1, restoring,
                                 factored & ~crawling & ~pending, options.line_search_steps,
                                 ~restoring & (soft_steps < options.max_soft_steps), evaluate_only=pending)
     step = Step(c=c, f_now=cs * state.residuals.cost, dl=dl, du=du, optimality=o, mu=mu, updates=updates,

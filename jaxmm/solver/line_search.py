@@ -85,6 +85,14 @@ class Search:
     solves: jax.Array
 
 
+def _zero_direction(P, c):
+    """A zero ``Direction`` for the primal leaves P (Z, θ, slacks…) and the rows' residuals c
+    (its structure, without tracing a block solve)."""
+    dP, dy = tmap(jnp.zeros_like, P), tmap(jnp.zeros_like, c)
+    zero = jnp.zeros((), P[0].dtype)
+    return Direction(dP, dy, dP, dP, zero, zero, dP[:2], dP[2:], jnp.asarray(0))
+
+
 def filter_acceptance(alpha, theta, phi, theta0, phi0, slope, theta_min, in_filter, rounding):
     """(accepted, an Armijo step (f-type), rejected by the filter alone) of a trial with
     infeasibility θ and barrier function φ, for a step length α from (θ₀, φ₀) with slope ∇φᵀd
@@ -101,8 +109,9 @@ def filter_acceptance(alpha, theta, phi, theta0, phi0, slope, theta_min, in_filt
     return sufficient & ~filtered, switching & armijo, sufficient & filtered
 
 
-def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, start, steps, soft, evaluate_only=False):
-    """The trials of one iteration from P (scaled residuals c there).
+def search(P, c, r, direction, evaluate, judge, slope_of, theta_of, restoring, start, steps, soft, evaluate_only=False):
+    """The trials of one iteration from P (scaled residuals c there; r: the NLP's residuals at P,
+    or any of their structure, kept as the last trial's until one is evaluated).
 
     direction(c_q, needed) → ``Direction`` for the constraint right-hand side c_q (a zero step
     without a block solve where ``needed`` is false); evaluate(P) → (f, c, r); slope_of(Direction) → the merit's
@@ -148,14 +157,12 @@ def search(P, c, direction, evaluate, judge, slope_of, theta_of, restoring, star
             last=last, theta_last=jnp.where(softening, s.theta_last, theta), accepted=ok, f_type=f_type,
             corrected=correcting & ok, blocked=s.blocked | by_filter, soft=softening, solves=s.solves + d.solves)
 
-    placeholder = jax.eval_shape(lambda: direction(c, jnp.asarray(False)))
-    blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), placeholder)
-    f0, _, r0 = jax.eval_shape(evaluate, P)
+    blank = _zero_direction(P, c)
     zero = jnp.zeros((), theta0.dtype)
     initial = Search(
         phase=jnp.where(start, NEWTON, jnp.where(evaluate_only, EVALUATE, DONE)), newton=blank, correction=blank, c_soc=c, alpha_soc=zero,
         corrections=jnp.asarray(0), backtracks=jnp.asarray(0), slope=zero,
-        last=Trial(P, jnp.zeros(f0.shape, f0.dtype), c, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), r0), zero),
+        last=Trial(P, zero, c, r, zero),
         theta_last=theta0, accepted=jnp.asarray(False), f_type=jnp.asarray(False), corrected=jnp.asarray(False),
-        blocked=jnp.asarray(False), soft=jnp.asarray(False), solves=jnp.zeros((), placeholder.solves.dtype))
+        blocked=jnp.asarray(False), soft=jnp.asarray(False), solves=jnp.zeros_like(blank.solves))
     return jax.lax.while_loop(lambda s: s.phase != DONE, body, initial)
