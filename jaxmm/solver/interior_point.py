@@ -426,7 +426,8 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
     new = dataclasses.replace(new, soft=SoftStep(soft & finite, _soft_reference(ctx, state, step), refused))
     new = select(finite, new, state)
     _report(ctx, report, k, new.history[k])  # the row the history keeps for this iteration
-    return dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)), iterations=k + 1), search.last.r
+    new = dataclasses.replace(new, status=jnp.where(finite, new.status, int(Status.NAN)), iterations=k + 1)
+    return new, search.last.r
 
 
 def _primal_dual_error(dual, c, complementarity):

@@ -58,8 +58,8 @@ class Trial:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Search:
-    """The loop's state: phase (NEWTON, CORRECTION, BACKTRACK, SOFT, DONE, EVALUATE); newton, the Newton
-    direction; correction, the last second-order correction and its right-hand side c_soc (the
+    """The loop's state: phase (NEWTON, CORRECTION, BACKTRACK, SOFT, DONE, EVALUATE); newton, the
+    Newton direction; correction, the last second-order correction and its right-hand side c_soc (the
     accumulated residuals, eq. 27 of Wächter & Biegler) with its step length alpha_soc;
     corrections, backtracks: their counts; slope, the directional derivative of the merit along
     the Newton step; last, the last trial and theta_last its infeasibility; accepted, f_type
@@ -160,7 +160,8 @@ def search(P, c, r, direction, evaluate, judge, slope_of, theta_of, restoring, s
     blank = _zero_direction(P, c)
     zero = jnp.zeros((), theta0.dtype)
     initial = Search(
-        phase=jnp.where(start, NEWTON, jnp.where(evaluate_only, EVALUATE, DONE)), newton=blank, correction=blank, c_soc=c, alpha_soc=zero,
+        phase=jnp.where(start, NEWTON, jnp.where(evaluate_only, EVALUATE, DONE)), newton=blank, correction=blank,
+        c_soc=c, alpha_soc=zero,
         corrections=jnp.asarray(0), backtracks=jnp.asarray(0), slope=zero,
         last=Trial(P, zero, c, r, zero),
         theta_last=theta0, accepted=jnp.asarray(False), f_type=jnp.asarray(False), corrected=jnp.asarray(False),
