@@ -1,6 +1,6 @@
 """Saved solutions: a solved task written to one ``.npz`` file with a JSON header, and read back.
 
-The file (format ``jaxmm-solution``, version 5) holds NumPy arrays only (no pickles) and one
+The file (format ``jaxmm-solution``, version 6) holds NumPy arrays only (no pickles) and one
 JSON header ``__header__``:
 
 * ``format``, ``version``, ``jaxmm_version``, ``saved_at`` (UTC, ISO 8601);
@@ -18,7 +18,9 @@ Files of versions 1 (before the history recorded the linear solves of each itera
 (before it marked the restoration phase's iterations) and 3 (before it recorded the
 factorisations of the inertia correction) are read too: their history gets the missing columns
 as NaN. Files before version 5 (before the complementarity's σ and slack bound were task
-parameters) solved the published relaxation: σ = 0, ε_max = ∞.
+parameters) solved the published relaxation: σ = 0, ε_max = ∞. Files before version 6 (before
+the squared slack penalty was a weight) name their penalty in the task's ``slack_penalty``; it
+becomes the weights ``complementarity_slack`` and ``complementarity_slack_squared``.
 
 Arrays are named by their path in the skeleton (``trajectory.knots.com``). Files are written
 atomically: a temporary file in the same directory, renamed over the target once complete.
@@ -43,8 +45,8 @@ from jaxmm.transcription.problem import Task, TaskParams, Weights
 from jaxmm.transcription.variables import Knot, Trajectory
 
 FORMAT = "jaxmm-solution"
-VERSION = 5
-READABLE_VERSIONS = (1, 2, 3, 4, 5)
+VERSION = 6
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
 # The task parameters added by a version, with the value every older file solved with.
 _ADDED_PARAMS = {5: dict(complementarity_tolerance=0.0, slack_limit=float("inf"))}
 HEADER = "__header__"
@@ -110,6 +112,21 @@ def _decode_params(skeleton, arrays, version):
     return dataclasses.replace(params, **{name: jax.numpy.asarray(getattr(params, name)) for name in added})
 
 
+def _decode_weights(skeleton, arrays, spec):
+    """The ``Weights`` of a file's skeleton; a file before version 6 puts its one slack weight on
+    the penalty its task's ``slack_penalty`` names."""
+    if "complementarity_slack_squared" in skeleton["fields"]:
+        return _decode(skeleton, arrays)
+    weights = _decode(dict(skeleton, fields=dict(skeleton["fields"], complementarity_slack_squared={"float": 0.0})),
+                      arrays)
+    weights = dataclasses.replace(weights, complementarity_slack_squared=jax.numpy.zeros_like(
+        weights.complementarity_slack))
+    if spec.get("slack_penalty", "linear") == "linear":
+        return weights
+    return dataclasses.replace(weights, complementarity_slack=weights.complementarity_slack_squared,
+                               complementarity_slack_squared=weights.complementarity_slack)
+
+
 def robot_fingerprint(robot):
     """SHA-256 of a robot's structure (topology, frames) and numbers (every model array)."""
     digest = hashlib.sha256()
@@ -159,7 +176,6 @@ def save(path, task, result):
             n_intervals=task.n_intervals,
             zero_initial_thrust=task.zero_initial_thrust,
             integration=task.integration,
-            slack_penalty=task.slack_penalty,
             upper_body_joints=list(task.upper_body_joints),
             joint_torque_limits=task.joint_torque_limits,
             params=_encode(task.params, "task.params", arrays),
@@ -246,12 +262,11 @@ def load(path, robot=None):
         task = Task(
             robot=robot,
             params=_decode_params(spec["params"], arrays, header["version"]),
-            weights=_decode(spec["weights"], arrays),
+            weights=_decode_weights(spec["weights"], arrays, spec),
             name=spec["name"],
             n_intervals=int(spec["n_intervals"]),
             zero_initial_thrust=bool(spec["zero_initial_thrust"]),
             integration=spec["integration"],
-            slack_penalty=spec["slack_penalty"],
             upper_body_joints=tuple(spec["upper_body_joints"]),
             joint_torque_limits=bool(spec.get("joint_torque_limits", False)),  # absent before the option existed
         )

@@ -9,8 +9,10 @@ import numpy as np
 
 from jaxmm.rigid_body.kinematics import frame_poses
 from jaxmm.robots import ironcub_description, load_ironcub
-from jaxmm.transcription.problem import INTEGRATION_RULES, SLACK_PENALTIES, Task, TaskParams, Weights
+from jaxmm.transcription.problem import INTEGRATION_RULES, Task, TaskParams, Weights
 from jaxmm.transcription.variables import Trajectory
+
+SLACK_PENALTIES = ("linear", "squared")
 
 _IRONCUB_WEIGHTS = dict(
     com_acc=1e5, com_vel=1e7, ang_mom_rate=1e4, ang_mom=1e4, joint_vel_upper=5e5,
@@ -136,7 +138,8 @@ def build_task(
     ``Weights``. jet_coefficients (nj, 10) and max_thrust (nj,) are required when the robot
     has jets. joint_limits (n, 2) [rad] default to the URDF limits. upper_body_joints: names.
     complementarity_tolerance, slack_limit: the complementarity rows' σ and the slacks' bound
-    (``TaskParams``; the defaults are the published relaxation). joint_torque_limits: bound every
+    (``TaskParams``; the defaults are the published relaxation). slack_penalty: "linear"
+    (published) or "squared" (``with_slack_penalty``). joint_torque_limits: bound every
     joint torque by the URDF's effort limit (``Task.joint_torque_limits``; off in the paper's NLP).
     Raises ValueError naming the problem for inconsistent input.
     """
@@ -146,8 +149,6 @@ def build_task(
         raise ValueError(f"knots must be an integer N ≥ 2 (N + 1 knots), got {knots!r}")
     if integration not in INTEGRATION_RULES:
         raise ValueError(f"integration must be one of {INTEGRATION_RULES}, got {integration!r}")
-    if slack_penalty not in SLACK_PENALTIES:
-        raise ValueError(f"slack_penalty must be one of {SLACK_PENALTIES}, got {slack_penalty!r}")
     initial_com, final_com = (_target(v, label, com_xy_limit) for v, label in ((initial_com, "initial_com"),
                                                                              (final_com, "final_com")))
     if not (min_dt > 0 and np.isfinite(max_dt) and max_dt >= min_dt):
@@ -190,7 +191,7 @@ def build_task(
         complementarity_tolerance=jnp.asarray(float(complementarity_tolerance)),
         slack_limit=jnp.asarray(float(slack_limit)),
     )
-    return Task(
+    task = Task(
         robot=robot,
         params=params,
         weights=weights,
@@ -198,10 +199,26 @@ def build_task(
         n_intervals=int(knots),
         zero_initial_thrust=bool(zero_initial_thrust and nj > 0),
         integration=integration,
-        slack_penalty=slack_penalty,
         upper_body_joints=tuple(model.joint_index(j) for j in upper_body_joints),
         joint_torque_limits=bool(joint_torque_limits),
     )
+    return task if slack_penalty == "linear" else with_slack_penalty(task, slack_penalty)
+
+
+def with_slack_penalty(task, penalty):
+    """``task`` with its slack weight w on the slacks of eq. (20, 21) as w Σ ε (``"linear"``,
+    the published runs: an exact penalty) or w Σ ε² (``"squared"``, the paper's text: smooth,
+    so that its optimum keeps small positive slacks). w is the task's ``complementarity_slack``
+    plus ``complementarity_slack_squared`` (one of them is normally zero); both penalties are
+    data, so one compiled solve serves both. Raises ValueError for another ``penalty``.
+    """
+    if penalty not in SLACK_PENALTIES:
+        raise ValueError(f"slack_penalty must be one of {SLACK_PENALTIES}, got {penalty!r}")
+    w = task.weights.complementarity_slack + task.weights.complementarity_slack_squared
+    zero = jnp.zeros_like(w)
+    linear, squared = (w, zero) if penalty == "linear" else (zero, w)
+    weights = dataclasses.replace(task.weights, complementarity_slack=linear, complementarity_slack_squared=squared)
+    return dataclasses.replace(task, weights=weights)
 
 
 def exact_complementarity(task, tolerance=1e-6):

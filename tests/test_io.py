@@ -90,6 +90,25 @@ def test_a_file_before_version_5_solved_the_published_complementarity(saved, tmp
     _leaves_equal(loaded.params, task.params)
 
 
+@pytest.mark.parametrize("penalty", ["linear", "squared"])
+def test_a_file_before_version_6_keeps_its_slack_penalty(saved, tmp_path, penalty):
+    """Files written while the slack penalty was a static option (the task's ``slack_penalty``,
+    one slack weight) load with that weight on the penalty they named, the other one zero."""
+    path, task, _ = saved
+
+    def as_version_5(arrays):
+        content = json.loads(str(arrays["__header__"]))
+        del arrays[content["task"]["weights"]["fields"].pop("complementarity_slack_squared")["array"]]  # 0.0
+        content["task"]["slack_penalty"] = penalty
+        arrays["__header__"] = np.array(json.dumps({**content, "version": 5}))
+
+    loaded, _ = io.load(_rewrite(path, tmp_path / "version_5.npz", as_version_5))
+    weight = float(task.weights.complementarity_slack)
+    expected = (weight, 0.0) if penalty == "linear" else (0.0, weight)
+    assert (float(loaded.weights.complementarity_slack), float(loaded.weights.complementarity_slack_squared)) == expected
+    assert jax.tree_util.tree_structure(loaded) == jax.tree_util.tree_structure(task)
+
+
 def test_a_file_from_another_robot_is_refused(saved, ironcub):
     path, _, _ = saved
     without_jets = dataclasses.replace(ironcub, jet_frames=())

@@ -132,31 +132,46 @@ def _eq32_terms(task, trajectory):
                + w["final_posture"] * _squares(posture)[-1] + w["final_force"] * _squares(x.contact_forces)[-1]),
         initial=(w["initial_posture"] * _squares(posture)[0] + w["initial_base_orientation"] * rotation.magnitude() ** 2
                  + w["initial_force"] * _squares(x.contact_forces)[0]),
-        slack=w["complementarity_slack"] * np.sum(slacks if task.slack_penalty == "linear" else slacks**2),
+        slack=w["complementarity_slack"] * np.sum(slacks) + w["complementarity_slack_squared"] * np.sum(slacks**2),
         horizon=w["horizon"] * T,
     )
 
 
 def test_cost_terms_follow_eq_32_and_every_sum_of_them_agrees():
     """Each term of ``cost_terms`` equals eq. (32) written out independently, with every weight a
-    distinct non-zero value (a term on the wrong field, knot or weight shows), for both slack
-    penalties; the total, the knot-by-knot ``total_cost`` and the NLP's cost equal their sum."""
+    distinct non-zero value (a term on the wrong field, knot or weight shows; both slack
+    penalties at once); the total, the knot-by-knot ``total_cost`` and the NLP's cost equal their
+    sum."""
     rng = np.random.default_rng(5)
     weights = {f.name: rng.uniform(0.5, 2.0) for f in dataclasses.fields(Weights)}
     task = scenario("walk_to_fly", knots=6, weights=weights)
     Z, theta = _random_point(task, seed=2)
     trajectory = transcription.to_trajectory(task, Z, theta)
-    for penalty in ("linear", "squared"):
-        variant = dataclasses.replace(task, slack_penalty=penalty)
-        terms, expected = costs.cost_terms(variant, trajectory), _eq32_terms(variant, trajectory)
-        for name, value in expected.items():
-            assert np.isclose(terms[name], value, rtol=1e-12, atol=0), (penalty, name)
-        J = sum(expected.values())
-        assert np.isclose(terms["total"], J, rtol=1e-12), penalty
-        assert np.isclose(costs.total_cost(variant, trajectory), J, rtol=1e-12), penalty
-    nlp = transcription.stagewise_nlp(task)  # the published, linear penalty
-    J = sum(_eq32_terms(task, trajectory).values())
+    terms, expected = costs.cost_terms(task, trajectory), _eq32_terms(task, trajectory)
+    for name, value in expected.items():
+        assert np.isclose(terms[name], value, rtol=1e-12, atol=0), name
+    J = sum(expected.values())
+    assert np.isclose(terms["total"], J, rtol=1e-12)
+    assert np.isclose(costs.total_cost(task, trajectory), J, rtol=1e-12)
+    nlp = transcription.stagewise_nlp(task)
     assert np.isclose(jax.jit(stagewise.residuals)(nlp, Z, theta).cost, J, rtol=1e-12)
+
+
+def test_a_slack_penalty_moves_the_slack_weight_and_keeps_the_compiled_structure():
+    """``with_slack_penalty`` puts the task's one slack weight on Σ ε or on Σ ε², as the builder's
+    ``slack_penalty`` does, without changing the task's pytree structure (one compiled solve)."""
+    task = scenario("take_off", knots=4)
+    w = float(task.weights.complementarity_slack)
+    squared = tasks.with_slack_penalty(task, "squared")
+    assert (float(squared.weights.complementarity_slack), float(squared.weights.complementarity_slack_squared)) == (
+        0.0, w)
+    built = scenario("take_off", knots=4, slack_penalty="squared")
+    assert jax.tree.all(jax.tree.map(lambda a, b: np.array_equal(a, b), built.weights, squared.weights))
+    back = tasks.with_slack_penalty(squared, "linear")
+    assert jax.tree.all(jax.tree.map(lambda a, b: np.array_equal(a, b), back.weights, task.weights))
+    assert jax.tree.structure(squared) == jax.tree.structure(task)
+    with pytest.raises(ValueError, match="slack_penalty must be one of"):
+        tasks.with_slack_penalty(task, "cubic")
 
 
 def test_cost_is_differentiable_in_the_weights():

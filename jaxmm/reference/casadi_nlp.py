@@ -416,10 +416,10 @@ class ReferenceNLP:
         )
 
     def _slack(self, v):
-        """w_ε Σ_i (ε_n,i + ε_t,i) ("linear", published) or w_ε Σ_i (ε_n,i² + ε_t,i²) ("squared")."""
+        """w_ε Σ_i (ε_n,i + ε_t,i) (published) + w_ε² Σ_i (ε_n,i² + ε_t,i²) (the text)."""
         slacks = cs.vertcat(v["normal_slack"], v["tangential_slack"])
-        penalty = cs.sum1(slacks) if self.task.slack_penalty == "linear" else cs.sumsqr(slacks)
-        return self._numbers.weights["complementarity_slack"] * penalty
+        W = self._numbers.weights
+        return W["complementarity_slack"] * cs.sum1(slacks) + W["complementarity_slack_squared"] * cs.sumsqr(slacks)
 
     # ---- the whole horizon
 

@@ -64,10 +64,9 @@ def initial_cost(task, weights, knot):
 
 
 def slack_cost(task, weights, knot):
-    """Complementarity slack penalty at one knot: linear (published) or squared (the text)."""
+    """Complementarity slack penalty at one knot: w_ε Σ ε (published) + w_ε² Σ ε² (the text)."""
     slacks = jnp.concatenate([knot.normal_slack, knot.tangential_slack])
-    penalty = jnp.sum(slacks) if task.slack_penalty == "linear" else _sq(slacks)
-    return weights.complementarity_slack * penalty
+    return weights.complementarity_slack * jnp.sum(slacks) + weights.complementarity_slack_squared * _sq(slacks)
 
 
 def knot_cost(task, weights, knot, total_time, role):

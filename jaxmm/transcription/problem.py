@@ -15,7 +15,6 @@ from jaxmm.robots import Robot
 from jaxmm.transcription.variables import Layout
 
 INTEGRATION_RULES = ("trapezoidal", "backward_euler")
-SLACK_PENALTIES = ("linear", "squared")
 
 
 def _weight():
@@ -28,7 +27,10 @@ class Weights:
     """Cost weights of eq. (32) (docs/formulation.md, "Cost"); every weight defaults to 0.
 
     Running terms (× Δt, knots 0..N−1), final terms (knot N), initial terms (knot 0), the
-    complementarity slacks (every knot) and the total time.
+    complementarity slacks (every knot) and the total time. The slacks ε_n, ε_t of eq. (20, 21)
+    are paid for by ``complementarity_slack`` × Σ ε (the published runs) plus
+    ``complementarity_slack_squared`` × Σ ε² (the paper's text); both are data, so that one
+    compiled solve serves either penalty (``tasks.with_slack_penalty``).
     """
 
     com_acc: float = _weight()
@@ -52,16 +54,19 @@ class Weights:
     initial_base_orientation: float = _weight()
     initial_force: float = _weight()
     complementarity_slack: float = _weight()
+    complementarity_slack_squared: float = _weight()
     horizon: float = 1.0
 
     @classmethod
     def from_dict(cls, weights):
-        """Weights from {name: value}; unknown names and non-scalar values raise ValueError."""
+        """Weights from {name: value}, every weight a float array (the unnamed ones at their
+        default), so that tasks which differ in any weight share one compiled solve; unknown
+        names and non-scalar values raise ValueError."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(weights) - names)
         if unknown:
             raise ValueError(f"unknown cost weights {unknown}; known weights: {sorted(names)}")
-        checked = {}
+        checked = {f.name: jnp.asarray(f.default, dtype=float) for f in dataclasses.fields(cls)}
         for name, value in weights.items():
             array = jnp.asarray(value, dtype=float)
             if array.shape != ():
@@ -124,7 +129,7 @@ class Task:
 
     n_intervals: N (the trajectory has N + 1 knots); zero_initial_thrust: T[0], Ṫ[0] ≈ 0;
     integration: "trapezoidal" (published runs) or "backward_euler" (the paper's text);
-    slack_penalty: "linear" (published) or "squared" (the text); upper_body_joints: indices
+    upper_body_joints: indices
     in s of the joints weighted by ``joint_vel_upper``; joint_torque_limits: add the
     ``joint_torque`` family |τ_j| ≤ τ_max,j (the URDF's effort limits, ``Model.effort_limits``)
     at knots 1..N, beyond the paper's NLP.
@@ -137,7 +142,6 @@ class Task:
     n_intervals: int = dataclasses.field(metadata=dict(static=True))
     zero_initial_thrust: bool = dataclasses.field(default=True, metadata=dict(static=True))
     integration: str = dataclasses.field(default="trapezoidal", metadata=dict(static=True))
-    slack_penalty: str = dataclasses.field(default="linear", metadata=dict(static=True))
     upper_body_joints: tuple = dataclasses.field(default=(), metadata=dict(static=True))
     joint_torque_limits: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
