@@ -47,7 +47,8 @@ column then reads "coarse + fine"; compile and solve times count both levels.
 --elastic solves each scenario by ``jaxmm.solve_elastic``: the published NLP, then its slack weight
 raised ×10 per stage, warm-started, until every complementarity product is ≤ 1e-6 N m; the
 iterations column lists the stages, the objective is the published cost (eq. 32) of the answer,
-and ``validate`` checks it against the task of its last stage. Every table reports the largest
+and ``validate`` checks it against the task of its last stage. --smooth-start adds
+``solve_elastic``'s smooth start (the squared slack penalty first; implies --elastic). Every table reports the largest
 product f_z c_z or |f_z Δc_xy| (``analysis.complementarity``) of each answer, IPOPT's included.
 
 --ipopt-slacks solves with ``Options(ipopt_slacks=True)`` (δ_w regularises the slacks too, as
@@ -60,7 +61,7 @@ IPOPT's ``max_iter``, for quick runs.
 
 Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
        [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M] [--coarse NC]
-       [--ipopt-slacks [take_off,...]] [--slack-start pushed|guess] [--elastic]
+       [--ipopt-slacks [take_off,...]] [--slack-start pushed|guess] [--elastic] [--smooth-start]
 """
 
 import os
@@ -113,17 +114,17 @@ def measure(task, trajectory):
     return stagewise.residuals(nlp, Z, theta).cost, ip.violation(nlp, Z, theta)[0]
 
 
-def solve_ours(task, guess, options, repeats, coarse=None, elastic=False):
+def solve_ours(task, guess, options, repeats, coarse=None, elastic=None):
     """(compile seconds, median solve seconds, result, coarse TaskSolution or None) of the
-    compiled solve; result: a TaskSolution, or with ``elastic`` the ``ElasticSolution`` of
-    ``solve_elastic`` (its stages share the compiled solve); with ``coarse`` (a number of
+    compiled solve; result: a TaskSolution, or with ``elastic`` (``solve_elastic``'s keyword
+    arguments) the ``ElasticSolution`` of ``solve_elastic`` (its stages share the compiled solve); with ``coarse`` (a number of
     intervals), coarse to fine: the task on that many intervals (``tasks.with_intervals``) solved
     from its own published guess, its answer resampled (``variables.resample``) as the guess of
     the task's solve; compile time: both compilations; solve time: both solves and the
     resampling."""
-    if elastic:
+    if elastic is not None:
         _, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
-        run = lambda: (jax.block_until_ready(solve.solve_elastic(task, guess, options)), None)  # noqa: E731
+        run = lambda: (jax.block_until_ready(solve.solve_elastic(task, guess, options, **elastic)), None)  # noqa: E731
     elif coarse is None:
         compiled, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
         run = lambda: (jax.block_until_ready(compiled()), None)  # noqa: E731
@@ -151,22 +152,22 @@ def verdict(report):
 
 
 def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack_penalty, coarse, save=None,
-                 elastic=False):
+                 elastic=None):
     """Everything printed about one scenario, as a dict; IPOPT too if urdf_path is given; our
     solution written to the directory ``save`` (``jaxmm.io.save``: trajectory, multipliers, the
-    per-iteration history) if given; ours by ``solve_elastic`` with ``elastic``."""
+    per-iteration history) if given; ours by ``solve_elastic`` with ``elastic`` (its keyword arguments)."""
     task = tasks.scenario(name, knots=knots, slack_penalty=slack_penalty)
     guess = tasks.initial_guess(task)
     label = name if slack_penalty == "linear" else f"{name} ({slack_penalty} slacks)"
     label = label if coarse is None else f"{label}, from N = {coarse}"
     label = f"{label}, ipopt_slacks" if options.ipopt_slacks else label
     label = label if options.slack_start == ip.Options.slack_start else f"{label}, slacks from the {options.slack_start}"
-    label = f"{label}, solve_elastic" if elastic else label
+    label = label if elastic is None else f"{label}, solve_elastic" + (", smooth start" if elastic["smooth_start"] else "")
     row = dict(name=label, N=task.n_intervals, sizes=sizes(task, guess))
     log(f"{name} N = {task.n_intervals}: compiling our solve...")
     compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse, elastic)
     log(f"{name}: solved in {format_time(solve_time)} (median of {repeats}); validating...")
-    if elastic:  # the stages' iterations; the answer is validated against its stage's task
+    if elastic is not None:  # the stages' iterations; the answer is validated against its stage's task
         inner, (solved_task, result) = " + ".join(map(str, result.iterations)), (result.task, result.result)
     else:
         solved_task = task
@@ -310,11 +311,14 @@ def main():
     parser.add_argument("--elastic", action="store_true",
                         help="solve by jaxmm.solve_elastic (the published NLP, then its slack weight raised to "
                              "exact complementarity); iterations per stage")
+    parser.add_argument("--smooth-start", action="store_true",
+                        help="solve_elastic with its smooth start (the squared slack penalty first); implies --elastic")
     parser.add_argument("--save", default=None, metavar="DIR",
                         help="write each of our solutions to DIR/<scenario>_N<N>.npz (jaxmm.io.save; with its "
                              "per-iteration history)")
     args = parser.parse_args()
-    if args.elastic and args.coarse is not None:
+    elastic = dict(smooth_start=args.smooth_start) if args.elastic or args.smooth_start else None
+    if elastic is not None and args.coarse is not None:
         parser.error("--elastic and --coarse cannot be combined")
     if args.save is not None:
         pathlib.Path(args.save).mkdir(parents=True, exist_ok=True)
@@ -340,7 +344,7 @@ def main():
                 rows.append(run_scenario(
                     name, args.knots_override, dataclasses.replace(options, ipopt_slacks=name in slack_names), args.repeats,
                     urdf.name if args.ipopt else None, args.max_iterations,
-                    args.slack_penalty, args.coarse, args.save, args.elastic,
+                    args.slack_penalty, args.coarse, args.save, elastic,
                 ))
     knot_table = None
     if args.knots is not None:

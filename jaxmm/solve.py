@@ -38,6 +38,7 @@ from jaxmm.analysis.validation import complementarity
 from jaxmm.programs import DEFAULT_OPTIONS, WARM_START, TaskSolution
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import sensitivity, stopping
+from jaxmm.tasks import with_slack_penalty
 from jaxmm.transcription import nlp as transcription
 
 __all__ = ["DEFAULT_OPTIONS", "WARM_START", "ElasticSolution", "TaskSolution", "gradient", "solve_elastic", "solve_task"]
@@ -140,13 +141,16 @@ def gradient(task, result, loss):
 class ElasticSolution:
     """The answer of ``solve_elastic``: ``task``, the task its last converged stage solved (the
     given one with its slack weight raised), and ``result``, that stage's ``TaskSolution``
-    (what ``validate``, ``gradient`` and ``io.save`` take with ``task``). Per stage, the first
-    being ``solve_task`` itself: ``weights`` (w_complementarity_slack), ``iterations``,
-    ``statuses`` (``ip.Status``) and ``products`` (the largest of ``complementarity``'s normal
-    and planar products [N m]; NaN for a stage that did not converge)."""
+    (what ``validate``, ``gradient`` and ``io.save`` take with ``task``). Per stage, in order
+    (the smooth start's first when there is one, then ``solve_task``'s solve of the published
+    penalty, then the raises): ``penalties`` ("squared" or "linear"), ``weights`` (the slack
+    weight on that penalty), ``iterations``, ``statuses`` (``ip.Status``) and ``products`` (the
+    largest of ``complementarity``'s normal and planar products [N m]; NaN for a stage that did
+    not converge)."""
 
     task: object
     result: TaskSolution
+    penalties: tuple
     weights: tuple
     iterations: tuple
     statuses: tuple
@@ -161,13 +165,36 @@ class ElasticSolution:
         return sum(self.iterations)
 
 
+# The published penalty's stage after a converged smooth start: a cold start (the squared stage's
+# multipliers belong to another problem) at a barrier parameter below the default 0.1, so that
+# the start from a near-optimal point does not first move away from it.
+HANDOVER = dict(barrier0=1e-3)
+
+
+def _stage(penalty, weight, result):
+    converged = result.status == ip.Status.CONVERGED
+    product = _largest_product(result.trajectory) if converged else float("nan")
+    return penalty, weight, int(result.solution.iterations), result.status, product
+
+
 def _largest_product(trajectory):
     measure = complementarity(trajectory)
     return max(measure["normal"], measure["planar"])
 
 
+def _smooth_start(task, guess, options, iterations):
+    """The smooth start's stage and the published stage's (guess, options): the squared stage's
+    trajectory and ``HANDOVER`` where it converged, else the given ones."""
+    smooth = with_slack_penalty(task, "squared")
+    result = _iterate(smooth, guess, options, None, False, None, False, iterations)
+    stage = _stage("squared", float(smooth.weights.complementarity_slack_squared), result)
+    if result.status != ip.Status.CONVERGED:
+        return stage, guess, options
+    return stage, result.trajectory, dataclasses.replace(options, **HANDOVER)
+
+
 def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, factor=10.0, max_stages=4,
-                  stage_iterations=1500):
+                  stage_iterations=1500, smooth_start=False, smooth_iterations=120):
     """Solve ``task`` to exact contact complementarity: ``solve_task(task, guess, options)``,
     then, while a product f_z c_z or |f_z Δc_xy| (eq. 20, 21) is above ``tolerance`` [N m], the
     same task with its slack weight w_complementarity_slack × ``factor``, warm-started from the
@@ -181,29 +208,40 @@ def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, 
     compiled solve (weights are data). With the published slack weight, a task whose optimum
     buys force on a corner in the air (``validate`` fails) is moved to a physical one nearby.
 
+    smooth_start: first solve the task with its slack weight on Σ ε² (``tasks.with_slack_penalty``:
+    smooth, its slacks stay off the degenerate vertex ε = 0 of the ℓ1 relaxation), for at most
+    ``smooth_iterations``; where that converges, the published penalty's stage starts from its
+    trajectory (cold, ``HANDOVER``), else from ``guess`` as without it. It pays on tasks whose
+    ℓ1 solve crawls at that vertex (the take-off: docs/benchmarks.md), not on the jump, whose
+    squared stage does not converge.
+
     A stage that does not converge (``MAX_ITERATIONS`` past ``stage_iterations``) ends the
     continuation: the result is then the last converged stage, whose product (above
     ``tolerance``) precedes the failed stage's NaN in ``products``. Raises
     ValueError for a tolerance, factor or stage count out of range, TypeError as ``solve_task``.
     """
-    counts = all(isinstance(n, int) for n in (max_stages, stage_iterations))
-    if not (tolerance > 0 and factor > 1 and counts and max_stages >= 0 and stage_iterations > 0):
-        raise ValueError(f"need tolerance > 0, factor > 1, an integer max_stages ≥ 0 and stage_iterations > 0; got "
-                         f"{tolerance!r}, {factor!r}, {max_stages!r}, {stage_iterations!r}")
+    counts = all(isinstance(n, int) for n in (max_stages, stage_iterations, smooth_iterations))
+    if not (tolerance > 0 and factor > 1 and counts and max_stages >= 0 and min(stage_iterations, smooth_iterations) > 0):
+        raise ValueError(f"need tolerance > 0, factor > 1, an integer max_stages ≥ 0 and stage_iterations, "
+                         f"smooth_iterations > 0; got {tolerance!r}, {factor!r}, {max_stages!r}, {stage_iterations!r}, "
+                         f"{smooth_iterations!r}")
+    stages = []
+    if smooth_start:
+        smooth, guess, options = _smooth_start(task, guess, options, smooth_iterations)
+        stages.append(smooth)
     result = solve_task(task, guess, options)
     weight = float(task.weights.complementarity_slack)
-    stages = [(weight, int(result.solution.iterations), result.status, _largest_product(result.trajectory))]
-    while result.status == ip.Status.CONVERGED and stages[-1][3] > tolerance and len(stages) <= max_stages:
+    stages.append(_stage("linear", weight, result))
+    for _ in range(max_stages):
+        if result.status != ip.Status.CONVERGED or stages[-1][4] <= tolerance:
+            break
         weight *= factor
         # The same leaf type as a scenario's weights (a float64 array): the stage reuses the compiled solve.
         weights = dataclasses.replace(task.weights, complementarity_slack=jnp.asarray(weight, dtype=float))
         raised = dataclasses.replace(task, weights=weights)
         stage = _iterate(raised, None, options, result, False, None, False, stage_iterations)
-        converged = stage.status == ip.Status.CONVERGED
-        stages.append((weight, int(stage.solution.iterations), stage.status,
-                       _largest_product(stage.trajectory) if converged else float("nan")))
-        if not converged:
+        stages.append(_stage("linear", weight, stage))
+        if stage.status != ip.Status.CONVERGED:
             break
         task, result = raised, stage
-    weights, iterations, statuses, products = zip(*stages)
-    return ElasticSolution(task, result, weights, iterations, statuses, products)
+    return ElasticSolution(task, result, *zip(*stages))

@@ -274,6 +274,8 @@ SOLVE_CASES = {
                                                     "factor > 1"),
     "elastic continuation to a zero tolerance": (lambda: solve.solve_elastic(take_off(), tolerance=0.0), ValueError,
                                                  "tolerance > 0"),
+    "smooth start of no iterations": (lambda: solve.solve_elastic(take_off(), smooth_start=True, smooth_iterations=0),
+                                      ValueError, "smooth_iterations > 0"),
 }
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from jaxmm import analysis, tasks
+from jaxmm.transcription import costs
 from jaxmm.solve import solve_elastic, solve_task
 from jaxmm.solver import interior_point as ip
 
@@ -117,6 +118,34 @@ VARIANTS = [
 def test_the_elastic_continuation_is_exact_and_physical_on_other_tasks(name, overrides):
     task = tasks.scenario(name, **overrides)
     _exact_and_physical(task, solve_elastic(task, tolerance=SIGMA))
+
+
+def test_the_smooth_start_hands_the_squared_answer_to_the_published_penalty():
+    """``solve_elastic(smooth_start=True)`` on the reduced take-off: a converged stage on Σ ε²
+    (the squared penalty, with the task's slack weight), then the published ℓ1 stage from its
+    answer and the raises, to an exact and physical answer whose published cost is within 0.1 %
+    of the continuation's without the smooth start."""
+    task = tasks.scenario("take_off", **REDUCED_TAKE_OFF)
+    answer = solve_elastic(task, tolerance=SIGMA, smooth_start=True)
+    assert answer.penalties[:2] == ("squared", "linear") and set(answer.penalties[1:]) == {"linear"}
+    assert answer.statuses[0] is ip.Status.CONVERGED
+    assert answer.weights[0] == answer.weights[1] == float(task.weights.complementarity_slack)
+    _exact_and_physical(task, answer)
+    plain = solve_elastic(task, tolerance=SIGMA)
+    assert plain.penalties[0] == "linear"
+    published = [float(costs.total_cost(task, a.result.trajectory)) for a in (answer, plain)]
+    assert abs(published[0] - published[1]) <= 1e-3 * published[1], published
+
+
+def test_a_smooth_start_that_does_not_converge_leaves_the_published_solve_as_it_was():
+    """A smooth stage capped at 3 iterations does not converge: the published stage then starts
+    from the guess with the given options, and its answer is ``solve_task``'s, bit for bit."""
+    task, plain = _solved("take_off", REDUCED_TAKE_OFF)
+    answer = solve_elastic(task, smooth_start=True, smooth_iterations=3, max_stages=0)
+    assert [s.name for s in answer.statuses] == ["MAX_ITERATIONS", "CONVERGED"] and answer.iterations[0] == 3
+    assert np.isnan(answer.products[0]) and answer.penalties == ("squared", "linear")
+    assert answer.iterations[1] == int(plain.solution.iterations)
+    np.testing.assert_array_equal(np.asarray(answer.result.solution.Z), np.asarray(plain.solution.Z))
 
 
 def test_an_elastic_stage_that_does_not_converge_ends_the_continuation():
