@@ -17,10 +17,15 @@ name=value`` (repeatable) solves with ``solve.DEFAULT_OPTIONS`` so changed (a Py
 ``--option regularisation_decrease=0.01``): compare a variant with the default by their spreads.
 ``--task name=value`` (repeatable) changes the task in the same way (a ``tasks.build_task``
 keyword: ``--task boundary_tolerance=0.0``). Each answer's complementarity is printed beside it:
-the largest product f_z c_z [N m] and the largest slack ε_n, ε_t.
+the largest product f_z c_z [N m] and the largest slack ε_n, ε_t. ``--elastic`` solves each
+copy by ``solve.solve_elastic`` to exact complementarity (``--smooth-start``: with its smooth
+start; implies ``--elastic``): the iterations column lists the stages, the spread counts their
+sum, the objective is the published cost (eq. 32) of the answer, and ``validate`` checks it
+against the task of its last stage.
 
 Usage: python tools/rounding.py [--scenario take_off] [--knots N] [--copies 6]
        [--scale 1e-12] [--seed 0] [--option name=value ...] [--task name=value ...]
+       [--elastic] [--smooth-start]
 """
 
 import os
@@ -46,6 +51,7 @@ from machine import format_time, log, machine_lines, render, timed  # noqa: E402
 from solve_scenarios import per_iteration  # noqa: E402
 from jaxmm import analysis, programs, solve, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
+from jaxmm.transcription import costs  # noqa: E402
 
 
 def perturbed(guess, scale, seed):
@@ -90,6 +96,26 @@ def complementarity(trajectory):
     return float(np.max(product, initial=0.0)), slack
 
 
+def plain_run(task, compiled):
+    """guess → (TaskSolution, task, (iterations,)) by the compiled solve."""
+
+    def plain(guess):
+        result = compiled(guess)
+        return result, task, (int(result.solution.iterations),)
+
+    return plain
+
+
+def elastic_run(task, options, smooth_start):
+    """guess → (TaskSolution, the task it solved, iterations per stage) by ``solve_elastic``."""
+
+    def elastic(guess):
+        answer = solve.solve_elastic(task, guess, options, smooth_start=smooth_start)
+        return answer.result, answer.task, answer.iterations
+
+    return elastic
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="take_off", choices=tuple(tasks.SCENARIOS))
@@ -101,6 +127,9 @@ def main():
                         help="a solver option changed from the default (repeatable)")
     parser.add_argument("--task", action="append", default=[], metavar="NAME=VALUE",
                         help="a build_task keyword changed from the scenario's (repeatable)")
+    parser.add_argument("--elastic", action="store_true", help="solve by solve_elastic, to exact complementarity")
+    parser.add_argument("--smooth-start", action="store_true",
+                        help="solve_elastic with its smooth start (the squared slack penalty first)")
     args = parser.parse_args()
     if args.copies < 0 or not args.scale > 0:
         parser.error("--copies must be ≥ 0 and --scale > 0")
@@ -113,21 +142,25 @@ def main():
     task = tasks.scenario(args.scenario, knots=args.knots, **overrides)
     guess = tasks.initial_guess(task)
     log(f"{args.scenario} N = {task.n_intervals}: compiling...")
-    run, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
-    changed = ", ".join(args.option + args.task) or "the default options and task"
+    compiled, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
+    elastic = args.elastic or args.smooth_start
+    run = elastic_run(task, options, args.smooth_start) if elastic else plain_run(task, compiled)
+    mode = ["solve_elastic" + (" with its smooth start" if args.smooth_start else "")] if elastic else []
+    changed = ", ".join(args.option + args.task + mode) or "the default options and task"
     print(f"\n{args.scenario}, N = {task.n_intervals}, {changed}: compile {format_time(compile_time)}; "
           f"copies perturbed by a relative {args.scale:g} (seeds {args.seed}..{args.seed + args.copies - 1})\n")
     rows, iterations, times = [], [], []
     for copy in range(args.copies + 1):
         start = guess if copy == 0 else perturbed(guess, args.scale, args.seed + copy - 1)
-        result, seconds = timed(lambda: jax.block_until_ready(run(start)))
-        report = analysis.validate(task, result.trajectory)
-        n = int(result.solution.iterations)
+        (result, solved_task, stages), seconds = timed(lambda: jax.block_until_ready(run(start)))
+        report = analysis.validate(solved_task, result.trajectory)
+        n = sum(stages)
         iterations.append(n)
         times.append(seconds)
         product, slack = complementarity(result.trajectory)
-        rows.append((copy, n, f"{per_iteration(result.solution, 'factorisations'):.2f}", format_time(seconds),
-                     f"{float(result.solution.objective):.7g}", result.status.name.lower(),
+        rows.append((copy, " + ".join(map(str, stages)), f"{per_iteration(result.solution, 'factorisations'):.2f}",
+                     format_time(seconds), f"{float(costs.total_cost(task, result.trajectory)):.7g}",
+                     result.status.name.lower(),
                      f"{product:.1e}", f"{slack:.1e}",
                      "ok" if report.ok else f"FAILED ({', '.join(report.failed)})"))
         log(f"copy {copy}: {n} iterations, {format_time(seconds)}, {result.status.name.lower()}")
