@@ -19,13 +19,14 @@ name=value`` (repeatable) solves with ``solve.DEFAULT_OPTIONS`` so changed (a Py
 keyword: ``--task boundary_tolerance=0.0``). Each answer's complementarity is printed beside it:
 the largest product f_z c_z [N m] and the largest slack ε_n, ε_t. ``--elastic`` solves each
 copy by ``solve.solve_elastic`` to exact complementarity (``--smooth-start``: with its smooth
-start; implies ``--elastic``): the iterations column lists the stages, the spread counts their
+start; implies ``--elastic``; ``--max-stages`` caps its raises of the slack weight): the
+iterations column lists the stages, the spread counts their
 sum, the objective is the published cost (eq. 32) of the answer, and ``validate`` checks it
 against the task of its last stage.
 
 Usage: python tools/rounding.py [--scenario take_off] [--knots N] [--copies 6]
        [--scale 1e-12] [--seed 0] [--option name=value ...] [--task name=value ...]
-       [--elastic] [--smooth-start]
+       [--elastic] [--smooth-start] [--max-stages 4]
 """
 
 import os
@@ -106,11 +107,11 @@ def plain_run(task, compiled):
     return plain
 
 
-def elastic_run(task, options, smooth_start):
+def elastic_run(task, options, smooth_start, max_stages):
     """guess → (TaskSolution, the task it solved, iterations per stage) by ``solve_elastic``."""
 
     def elastic(guess):
-        answer = solve.solve_elastic(task, guess, options, smooth_start=smooth_start)
+        answer = solve.solve_elastic(task, guess, options, smooth_start=smooth_start, max_stages=max_stages)
         return answer.result, answer.task, answer.iterations
 
     return elastic
@@ -130,6 +131,7 @@ def main():
     parser.add_argument("--elastic", action="store_true", help="solve by solve_elastic, to exact complementarity")
     parser.add_argument("--smooth-start", action="store_true",
                         help="solve_elastic with its smooth start (the squared slack penalty first)")
+    parser.add_argument("--max-stages", type=int, default=4, help="solve_elastic's raises of the slack weight")
     args = parser.parse_args()
     if args.copies < 0 or not args.scale > 0:
         parser.error("--copies must be ≥ 0 and --scale > 0")
@@ -144,8 +146,8 @@ def main():
     log(f"{args.scenario} N = {task.n_intervals}: compiling...")
     compiled, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
     elastic = args.elastic or args.smooth_start
-    run = elastic_run(task, options, args.smooth_start) if elastic else plain_run(task, compiled)
-    mode = ["solve_elastic" + (" with its smooth start" if args.smooth_start else "")] if elastic else []
+    run = elastic_run(task, options, args.smooth_start, args.max_stages) if elastic else plain_run(task, compiled)
+    mode = [f"solve_elastic (≤ {args.max_stages} raises" + (", smooth start)" if args.smooth_start else ")")] if elastic else []
     changed = ", ".join(args.option + args.task + mode) or "the default options and task"
     print(f"\n{args.scenario}, N = {task.n_intervals}, {changed}: compile {format_time(compile_time)}; "
           f"copies perturbed by a relative {args.scale:g} (seeds {args.seed}..{args.seed + args.copies - 1})\n")
