@@ -124,16 +124,15 @@ def test_the_smooth_start_hands_the_squared_answer_to_the_published_penalty():
     """``solve_elastic(smooth_start=True)`` on the reduced take-off: a converged stage on Σ ε²
     (the squared penalty, with the task's slack weight), then the published ℓ1 stage from its
     answer and the raises, to an exact and physical answer whose published cost is within 0.1 %
-    of the continuation's without the smooth start."""
+    of the published NLP's optimum from the published guess."""
     task = tasks.scenario("take_off", **REDUCED_TAKE_OFF)
     answer = solve_elastic(task, tolerance=SIGMA, smooth_start=True)
     assert answer.penalties[:2] == ("squared", "linear") and set(answer.penalties[1:]) == {"linear"}
     assert answer.statuses[0] is ip.Status.CONVERGED
     assert answer.weights[0] == answer.weights[1] == float(task.weights.complementarity_slack)
     _exact_and_physical(task, answer)
-    plain = solve_elastic(task, tolerance=SIGMA)
-    assert plain.penalties[0] == "linear"
-    published = [float(costs.total_cost(task, a.result.trajectory)) for a in (answer, plain)]
+    _, plain = _solved("take_off", REDUCED_TAKE_OFF)
+    published = [float(costs.total_cost(task, r.trajectory)) for r in (answer.result, plain)]
     assert abs(published[0] - published[1]) <= 1e-3 * published[1], published
 
 
