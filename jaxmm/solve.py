@@ -41,7 +41,7 @@ from jaxmm.solver import sensitivity, stopping
 from jaxmm.tasks import with_slack_penalty
 from jaxmm.transcription import nlp as transcription
 
-__all__ = ["DEFAULT_OPTIONS", "WARM_START", "ElasticSolution", "TaskSolution", "gradient", "solve_elastic", "solve_task"]
+__all__ = ["DEFAULT_OPTIONS", "HANDOVER", "WARM_START", "ElasticSolution", "TaskSolution", "gradient", "solve_elastic", "solve_task"]
 
 
 def _differentiable(task, guess, options, warm_start, settings, time_budget, interruptible, same_scaling):
