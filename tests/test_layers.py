@@ -22,7 +22,7 @@ LAYERS = {
     "solver": {"stagewise"},
     "analysis": {"rigid_body", "robots", "physics", "transcription", "tasks", "solver"},
     "programs": {"compilation", "stagewise", "transcription", "tasks", "solver"},
-    "solve": {"programs", "solver", "transcription", "analysis"},
+    "solve": {"programs", "solver", "transcription", "tasks", "analysis"},
     "schedule": {"compilation", "programs", "solver"},
     "batch": {"programs", "schedule", "solve", "solver", "transcription", "tasks", "analysis"},
     "tuning": {"solve", "solver"},
