@@ -117,11 +117,11 @@ def measure(task, trajectory):
 def solve_ours(task, guess, options, repeats, coarse=None, elastic=None):
     """(compile seconds, median solve seconds, result, coarse TaskSolution or None) of the
     compiled solve; result: a TaskSolution, or with ``elastic`` (``solve_elastic``'s keyword
-    arguments) the ``ElasticSolution`` of ``solve_elastic`` (its stages share the compiled solve); with ``coarse`` (a number of
-    intervals), coarse to fine: the task on that many intervals (``tasks.with_intervals``) solved
-    from its own published guess, its answer resampled (``variables.resample``) as the guess of
-    the task's solve; compile time: both compilations; solve time: both solves and the
-    resampling."""
+    arguments) the ``ElasticSolution`` of ``solve_elastic`` (its stages share the compiled solve);
+    with ``coarse`` (a number of intervals), coarse to fine: the task on that many intervals
+    (``tasks.with_intervals``) solved from its own published guess, its answer resampled
+    (``variables.resample``) as the guess of the task's solve; compile time: both compilations;
+    solve time: both solves and the resampling."""
     if elastic is not None:
         _, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
         run = lambda: (jax.block_until_ready(solve.solve_elastic(task, guess, options, **elastic)), None)  # noqa: E731
@@ -162,7 +162,8 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
     label = label if coarse is None else f"{label}, from N = {coarse}"
     label = f"{label}, ipopt_slacks" if options.ipopt_slacks else label
     label = label if options.slack_start == ip.Options.slack_start else f"{label}, slacks from the {options.slack_start}"
-    label = label if elastic is None else f"{label}, solve_elastic" + (", smooth start" if elastic["smooth_start"] else "")
+    smooth = ", smooth start" if elastic is not None and elastic["smooth_start"] else ""
+    label = label if elastic is None else f"{label}, solve_elastic{smooth}"
     row = dict(name=label, N=task.n_intervals, sizes=sizes(task, guess))
     log(f"{name} N = {task.n_intervals}: compiling our solve...")
     compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse, elastic)

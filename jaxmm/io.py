@@ -113,18 +113,16 @@ def _decode_params(skeleton, arrays, version):
 
 
 def _decode_weights(skeleton, arrays, spec):
-    """The ``Weights`` of a file's skeleton; a file before version 6 puts its one slack weight on
-    the penalty its task's ``slack_penalty`` names."""
+    """The ``Weights`` of a file's skeleton; a file before version 6 has no squared slack weight
+    and puts its one slack weight on the penalty its task's ``slack_penalty`` names."""
     if "complementarity_slack_squared" in skeleton["fields"]:
         return _decode(skeleton, arrays)
     weights = _decode(dict(skeleton, fields=dict(skeleton["fields"], complementarity_slack_squared={"float": 0.0})),
                       arrays)
-    weights = dataclasses.replace(weights, complementarity_slack_squared=jax.numpy.zeros_like(
-        weights.complementarity_slack))
-    if spec.get("slack_penalty", "linear") == "linear":
-        return weights
-    return dataclasses.replace(weights, complementarity_slack=weights.complementarity_slack_squared,
-                               complementarity_slack_squared=weights.complementarity_slack)
+    w = weights.complementarity_slack
+    zero = jax.numpy.zeros_like(w)
+    linear, squared = (w, zero) if spec.get("slack_penalty", "linear") == "linear" else (zero, w)
+    return dataclasses.replace(weights, complementarity_slack=linear, complementarity_slack_squared=squared)
 
 
 def robot_fingerprint(robot):

@@ -41,7 +41,8 @@ from jaxmm.solver import sensitivity, stopping
 from jaxmm.tasks import with_slack_penalty
 from jaxmm.transcription import nlp as transcription
 
-__all__ = ["DEFAULT_OPTIONS", "HANDOVER", "WARM_START", "ElasticSolution", "TaskSolution", "gradient", "solve_elastic", "solve_task"]
+__all__ = ["DEFAULT_OPTIONS", "HANDOVER", "WARM_START", "ElasticSolution", "TaskSolution", "gradient", "solve_elastic",
+           "solve_task"]
 
 
 def _differentiable(task, guess, options, warm_start, settings, time_budget, interruptible, same_scaling):
@@ -221,7 +222,8 @@ def solve_elastic(task, guess=None, options=DEFAULT_OPTIONS, *, tolerance=1e-6, 
     ValueError for a tolerance, factor or stage count out of range, TypeError as ``solve_task``.
     """
     counts = all(isinstance(n, int) for n in (max_stages, stage_iterations, smooth_iterations))
-    if not (tolerance > 0 and factor > 1 and counts and max_stages >= 0 and min(stage_iterations, smooth_iterations) > 0):
+    positive = min(stage_iterations, smooth_iterations) > 0 if counts else False
+    if not (tolerance > 0 and factor > 1 and counts and max_stages >= 0 and positive):
         raise ValueError(f"need tolerance > 0, factor > 1, an integer max_stages ≥ 0 and stage_iterations, "
                          f"smooth_iterations > 0; got {tolerance!r}, {factor!r}, {max_stages!r}, {stage_iterations!r}, "
                          f"{smooth_iterations!r}")

@@ -149,6 +149,8 @@ def build_task(
         raise ValueError(f"knots must be an integer N ≥ 2 (N + 1 knots), got {knots!r}")
     if integration not in INTEGRATION_RULES:
         raise ValueError(f"integration must be one of {INTEGRATION_RULES}, got {integration!r}")
+    if slack_penalty not in SLACK_PENALTIES:
+        raise ValueError(f"slack_penalty must be one of {SLACK_PENALTIES}, got {slack_penalty!r}")
     initial_com, final_com = (_target(v, label, com_xy_limit) for v, label in ((initial_com, "initial_com"),
                                                                              (final_com, "final_com")))
     if not (min_dt > 0 and np.isfinite(max_dt) and max_dt >= min_dt):

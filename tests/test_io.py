@@ -105,7 +105,8 @@ def test_a_file_before_version_6_keeps_its_slack_penalty(saved, tmp_path, penalt
     loaded, _ = io.load(_rewrite(path, tmp_path / "version_5.npz", as_version_5))
     weight = float(task.weights.complementarity_slack)
     expected = (weight, 0.0) if penalty == "linear" else (0.0, weight)
-    assert (float(loaded.weights.complementarity_slack), float(loaded.weights.complementarity_slack_squared)) == expected
+    weights = loaded.weights
+    assert (float(weights.complementarity_slack), float(weights.complementarity_slack_squared)) == expected
     assert jax.tree_util.tree_structure(loaded) == jax.tree_util.tree_structure(task)
 
 

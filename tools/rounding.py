@@ -147,7 +147,8 @@ def main():
     compiled, compile_time = timed(lambda: programs.compile_solve(task, guess, options))
     elastic = args.elastic or args.smooth_start
     run = elastic_run(task, options, args.smooth_start, args.max_stages) if elastic else plain_run(task, compiled)
-    mode = [f"solve_elastic (≤ {args.max_stages} raises" + (", smooth start)" if args.smooth_start else ")")] if elastic else []
+    smooth = ", smooth start" if args.smooth_start else ""
+    mode = [f"solve_elastic (≤ {args.max_stages} raises{smooth})"] if elastic else []
     changed = ", ".join(args.option + args.task + mode) or "the default options and task"
     print(f"\n{args.scenario}, N = {task.n_intervals}, {changed}: compile {format_time(compile_time)}; "
           f"copies perturbed by a relative {args.scale:g} (seeds {args.seed}..{args.seed + args.copies - 1})\n")

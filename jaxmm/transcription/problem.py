@@ -129,10 +129,9 @@ class Task:
 
     n_intervals: N (the trajectory has N + 1 knots); zero_initial_thrust: T[0], Ṫ[0] ≈ 0;
     integration: "trapezoidal" (published runs) or "backward_euler" (the paper's text);
-    upper_body_joints: indices
-    in s of the joints weighted by ``joint_vel_upper``; joint_torque_limits: add the
-    ``joint_torque`` family |τ_j| ≤ τ_max,j (the URDF's effort limits, ``Model.effort_limits``)
-    at knots 1..N, beyond the paper's NLP.
+    upper_body_joints: indices in s of the joints weighted by ``joint_vel_upper``;
+    joint_torque_limits: add the ``joint_torque`` family |τ_j| ≤ τ_max,j (the URDF's effort
+    limits, ``Model.effort_limits``) at knots 1..N, beyond the paper's NLP.
     """
 
     robot: Robot
