@@ -94,7 +94,10 @@ class StagewiseNLP:
 
     args: parameter pytree; knot_data: (K, ...) per-knot data d_k; z_lower, z_upper: (K, nz);
     theta_lower, theta_upper: (ng,); path_lower, path_upper: (mg,) bounds of g (same at every
-    knot); transition_lower, transition_upper: (mh,) bounds of h.
+    knot); transition_lower, transition_upper: (mh,) bounds of h; path_relaxation (mg,),
+    transition_relaxation (mh,): which bound of each inequality row the solver's relaxation
+    homotopy (``Options.relaxation``) widens: +1 the upper, −1 the lower, 0 none (None: none
+    anywhere). Complementarity rows are the ones to mark (Scholtes' relaxation).
     """
 
     args: Any
@@ -108,6 +111,8 @@ class StagewiseNLP:
     transition_lower: jax.Array
     transition_upper: jax.Array
     functions: StagewiseFunctions = dataclasses.field(metadata=dict(static=True))
+    path_relaxation: jax.Array | None = None
+    transition_relaxation: jax.Array | None = None
 
     @property
     def n_knots(self):

@@ -13,12 +13,14 @@ answer, moves it to a physical one; so does the elastic-mode continuation (``sol
 from the published guess.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from jaxmm import analysis, tasks
 from jaxmm.transcription import costs
-from jaxmm.solve import solve_elastic, solve_task
+from jaxmm.solve import DEFAULT_OPTIONS, solve_elastic, solve_task
 from jaxmm.solver import interior_point as ip
 
 from conftest import REDUCED_TAKE_OFF
@@ -76,6 +78,25 @@ def test_exact_complementarity_from_the_published_answer_is_physical():
     assert np.all(np.asarray(knots.normal_slack) == 0) and np.all(np.asarray(knots.tangential_slack) == 0)
     report = analysis.validate(task, result.trajectory)
     assert report.ok, str(report)
+
+
+def test_the_relaxation_homotopy_finds_a_lower_exact_optimum_from_the_published_guess():
+    """The exact task (f_z c_z ≤ σ, no slack) of the take-off 38 cm up, from the published guess:
+    without the relaxation homotopy it converges to a physical answer 9 % above the one
+    warm-started from the published optimum (measured: 5.9387e6 against 5.4548e6); with it
+    (``Options.relaxation=1e-3``) it converges on the same exact task to 5.4270e6: every product
+    within σ (to the solver's violation tolerance), slack-free and physical."""
+    task = tasks.exact_complementarity(tasks.scenario("take_off", **UP), SIGMA)
+    alone = solve_task(task)
+    assert alone.status is ip.Status.CONVERGED, alone.status.message
+    homotopy = solve_task(task, options=dataclasses.replace(DEFAULT_OPTIONS, relaxation=1e-3))
+    assert homotopy.status is ip.Status.CONVERGED, homotopy.status.message
+    assert float(homotopy.solution.violation) <= DEFAULT_OPTIONS.tolerance
+    measure = analysis.complementarity(homotopy.trajectory)
+    assert max(measure["normal"], measure["planar"]) <= SIGMA + DEFAULT_OPTIONS.tolerance and measure["slack"] == 0
+    report = analysis.validate(task, homotopy.trajectory)
+    assert report.ok, str(report)
+    assert float(homotopy.solution.objective) <= 0.95 * float(alone.solution.objective)
 
 
 def _exact_and_physical(task, answer):

@@ -349,6 +349,45 @@ def test_complementarity_problem():
 
 
 
+def _both_products(a, z, theta):
+    return jnp.concatenate([z[:1] * z[1:2], -z[:1] * z[1:2]])  # x y ≤ 0 and −x y ≥ 0: one constraint twice
+
+
+def _relaxable_complementarity():
+    """min (x − 1)² + (y − 1)² s.t. x, y ≥ 0 and x y ≤ 0 written as an upper and as a lower bound,
+    both marked for the relaxation homotopy (+1: the upper bound widened, −1: the lower)."""
+
+    def cost(a, z, theta, d):
+        return (z[0] - 1) ** 2 + (z[1] - 1) ** 2 + 0.0 * d
+
+    functions = StagewiseFunctions(cost, _theta_cost, _no_path, _no_transition, _both_products, _no_transition)
+    nlp = _unconstrained(functions, jnp.zeros((2, 2)), jnp.full((2, 2), jnp.inf),
+                         (jnp.array([-jnp.inf, 0.0]), jnp.array([0.0, jnp.inf])))
+    return dataclasses.replace(nlp, path_relaxation=jnp.array([1.0, -1.0]), transition_relaxation=EMPTY)
+
+
+@pytest.mark.parametrize("relaxation", [0.0, 10.0])
+def test_the_relaxation_homotopy_widens_the_marked_bounds_with_mu_and_ends_on_the_nlp_itself(relaxation):
+    """Scholtes' relaxation driven by μ (``Options.relaxation``): while μ = 0.1 the marked rows
+    admit x y ≤ σ = κ (μ − μ_floor), and the iterates move into that room towards (1, 1); the
+    solve still ends on a vertex of the NLP itself (x y ≤ 0, violation ≤ 1e-8)."""
+    nlp = _relaxable_complementarity()
+    options = ip.Options(tolerance=1e-8, stationarity=1e-6, relaxation=relaxation)
+    Z0 = jnp.array([[1.0, 0.5], [0.4, 1.0]])
+    first = ip.advance(nlp, ip.start(nlp, Z0, jnp.zeros(1), options), options, until=1)
+    assert float(first.mu) == 0.1  # the first barrier problem
+    products = np.prod(np.asarray(first.iterate.P[0]), axis=1)
+    if relaxation:  # σ = 10 (0.1 − 1e-6 / 11) ≈ 1: the step uses the room (seen: 0.57 and 0.52)
+        assert products.min() >= 0.3
+    else:  # seen: 0.066 and 0.033
+        assert products.max() <= 0.1
+    solution = ip.solve(nlp, Z0, jnp.zeros(1), options)
+    assert ip.Status(int(solution.status)) is ip.Status.CONVERGED, ip.Status(int(solution.status)).message
+    assert float(solution.violation) <= 1e-8
+    assert np.prod(np.asarray(solution.Z), axis=1).max() <= 1e-8
+    assert abs(float(solution.objective) - 2.0) <= 1e-6
+
+
 def test_vmap_over_initial_guesses_equals_a_loop():
     """Batched solves from different starting points: same answers as one solve at a time."""
     nlp = _unconstrained(ROSENBROCK, jnp.full((3, 2), -jnp.inf), jnp.full((3, 2), jnp.inf))

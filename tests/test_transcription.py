@@ -280,6 +280,23 @@ def test_exact_complementarity_bounds_the_products_by_sigma_and_fixes_the_slacks
         tasks.exact_complementarity(task, -1.0)
 
 
+def test_the_complementarity_rows_alone_are_marked_for_the_relaxation_homotopy():
+    """``Options.relaxation`` widens the bounds that the NLP marks: the normal rows' upper bound
+    (+1), the planar rows' upper bounds (+1) and their lower bounds (−1), nothing else (the
+    joint torques' rows included)."""
+    task = scenario("take_off", knots=2, joint_torque_limits=True)
+    nlp = transcription.stagewise_nlp(task)
+    nc = len(task.robot.contact_frames)
+    for group, marks in (("path_inequality", nlp.path_relaxation), ("transition_inequality", nlp.transition_relaxation)):
+        offset = 0
+        for name, size in transcription.family_rows(task)[group]:
+            expected = dict(normal_complementarity=np.ones(nc),
+                            planar_complementarity=np.r_[np.ones(2 * nc), -np.ones(2 * nc)]).get(name, np.zeros(size))
+            np.testing.assert_array_equal(np.asarray(marks[offset:offset + size]), expected, err_msg=name)
+            offset += size
+        assert offset == marks.shape[0]
+
+
 def test_unknown_scenario_and_missing_jet_model():
     with pytest.raises(ValueError, match="unknown scenario 'hover'; scenarios: take_off"):
         scenario("hover")

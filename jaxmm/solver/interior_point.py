@@ -33,7 +33,7 @@ from jaxmm.solver import barrier, filter as filters, line_search, newton, restor
 from jaxmm.solver.filter import in_filter
 from jaxmm.solver.options import (EQUALITIES, GROUPS, HISTORY_COLUMNS, INEQUALITIES, REFINEMENT_STEPS,  # noqa: F401
                                   SLACK_STARTS, SOC_STEPS, Options, Status, iteration_options)
-from jaxmm.solver.scaling import outside, scaled_problem, violation  # noqa: F401
+from jaxmm.solver.scaling import outside, relaxed, scaled_problem, violation  # noqa: F401
 from jaxmm.solver.scaling import scaling as gradient_scaling
 from jaxmm.solver.state import Counters, FirstPass, Iterate, Multipliers, Solution, SoftStep, State  # noqa: F401
 from jaxmm.solver.trees import all_finite, dot, l1, max_abs, select, tmap
@@ -85,16 +85,25 @@ def start(nlp, Z0, theta0, options=Options(), multipliers=None, bound_multiplier
     return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.result_type(x)), state)
 
 
-def _in_scaling(nlp, state, factors, y):
+def _relaxation(options, mu, cost_scale):
+    """σ(μ) = κ_σ (μ − μ_floor) / cost factor of the relaxation homotopy (``Options.relaxation``),
+    in the rows' units; None when off. μ / cost factor is the barrier parameter in the NLP's own
+    cost units, so that one κ_σ serves tasks whose costs differ by orders of magnitude."""
+    if not options.relaxation:
+        return None
+    return options.relaxation * jnp.maximum(mu - options.barrier_floor, 0.0) / cost_scale
+
+
+def _in_scaling(nlp, state, factors, y, sigma=None):
     """``state`` (at the starting point, with its residuals there) in the scaling ``factors``
     (cost factor, per-row factors): the slacks at the rows of ``state.first_pass`` pushed inside
     their scaled bounds (the primal (Z, θ) is inside already, and the push leaves it), the
     multipliers ``y`` (the NLP's units) scaled, the bound multipliers kept where there is a
     bound, and the filter's envelope from the scaled residuals (IPOPT's θ_max = 10⁴ max(1, θ(x₀)),
-    θ_min = 10⁻⁴ of it)."""
-    problem = scaled_problem(nlp, factors)
+    θ_min = 10⁻⁴ of it); σ: the relaxation of the marked rows (``Options.relaxation``)."""
+    problem = scaled_problem(nlp, factors, sigma)
     cost_scale, row_scale, b = problem.cost_scale, problem.row_scale, problem.bounds
-    it, start_rows = state.iterate, state.first_pass.rows
+    it, start_rows = state.iterate, relaxed(nlp, *state.first_pass.rows, sigma)
     P = barrier.interior((it.P[0], it.P[1], start_rows[0] * row_scale[2], start_rows[1] * row_scale[3]), b,
                          state.first_pass.bound_push)
     y = tuple(cost_scale * v / s for v, s in zip(y, row_scale))
@@ -125,7 +134,7 @@ class Context:
 
 def context(nlp, state, options):
     """The ``Context`` of a solve of ``nlp`` in the scaling of ``state``."""
-    problem = scaled_problem(nlp, state.scaling)
+    problem = scaled_problem(nlp, state.scaling, _relaxation(options, state.mu, state.scaling[0]))
     supports = stagewise.row_supports(nlp)
     return Context(problem, newton.masks(problem.bounds, state.iterate.P[0].dtype), supports,
                    rows.coupled_columns(supports), options)
@@ -318,13 +327,14 @@ def _first_pass(ctx, state, B, after, r0):
     scaling, IPOPT's gradient-based scaling from the blocks B there. Only the leaves that the
     pass sets are selected."""
     first, nlp = state.first_pass, ctx.problem.nlp
-    v0, _ = violation(nlp, state.iterate.P[0], state.iterate.P[1], r0)
+    factors = select(first.scale, gradient_scaling(B, first.max_gradient), state.scaling)
+    sigma = _relaxation(ctx.options, state.mu, factors[0])
+    v0, _ = violation(nlp, state.iterate.P[0], state.iterate.P[1], r0, sigma)
     rows = select(first.rows_given, first.rows, (r0.path_inequality, r0.transition_inequality))
     begun = dataclasses.replace(state, residuals=r0, violation=v0,
                                 counters=dataclasses.replace(state.counters, short_violation=v0),
                                 first_pass=dataclasses.replace(first, rows=rows))
-    factors = select(first.scale, gradient_scaling(B, first.max_gradient), state.scaling)
-    scaled = _in_scaling(nlp, begun, factors, state.iterate.y)
+    scaled = _in_scaling(nlp, begun, factors, state.iterate.y, sigma)
     fields = ("iterate", "residuals", "violation", "counters", "scaling", "filter", "theta_max", "theta_min")
     chosen = select(first.pending, tuple(getattr(scaled, f) for f in fields), tuple(getattr(after, f) for f in fields))
     return dataclasses.replace(after, **dict(zip(fields, chosen)), first_pass=dataclasses.replace(
@@ -354,13 +364,19 @@ def _newton_iteration(ctx, state, B, J, c, dl, du, o, report):
     problem, options, b = ctx.problem, ctx.options, ctx.problem.bounds
     it, restoring = state.iterate, state.restoring
     P, zl, zu = it.P, it.zl, it.zu
-    converged = ~restoring & (o.error0 <= options.stationarity) & (state.violation <= options.tolerance)
+    # With the relaxation homotopy the state's violation is the relaxed NLP's; convergence is the NLP's own.
+    feasible = violation(problem.nlp, P[0], P[1], state.residuals)[0] if options.relaxation else state.violation
+    converged = ~restoring & (o.error0 <= options.stationarity) & (feasible <= options.tolerance)
     # Short steps that no longer cut the violation: restoration from here, without a step.
     crawling = (~restoring & (options.max_short_steps > 0) & (options.max_restoration_iterations > 0)
                 & (state.counters.short_steps >= options.max_short_steps) & (state.violation > options.tolerance)
                 & ~converged)
     mu, updates = barrier_update(ctx, state, o, dl, du)
     reset = updates > 0
+    if options.relaxation:  # the step solves the barrier problem at the new μ, with its σ(μ)
+        problem = dataclasses.replace(problem, sigma=_relaxation(options, mu, problem.cost_scale))
+        ctx = dataclasses.replace(ctx, problem=problem)
+        c = problem.constraints(P, state.residuals)
     filter_now = filters.reset(state.filter, state.theta_max, reset, 0)
     mu_r, zeta, D2 = restoration.terms(state, c, b)
     mu_step = jnp.where(restoring, mu_r, mu)
@@ -492,7 +508,7 @@ def _update(ctx, state, step, soft):
                                & (state.violation > options.tolerance) & (options.max_restoration_iterations > 0))
     f = filters.augment(f, step.theta0, step.phi0, restore)
     rejections = jnp.where(moved | unblock | restore, 0, counters.rejections + 1)
-    v_new, _ = violation(problem.nlp, P_new[0], P_new[1], r_new)
+    v_new, _ = problem.violation(P_new, r_new)
     short = (length < options.short_step) & ~restore
     short_violation = jnp.where(short & (counters.short_steps == 0), state.violation, counters.short_violation)
     factorisations = step.work.astype(v_new.dtype) / ctx.K

@@ -96,6 +96,15 @@ class Options:
     as IPOPT treats them, whose steps ours then follow (tools/follow_ipopt.py);
     take-off-and-landing converges in fewer iterations with it, take-off lands on an optimum
     that fails ``validate`` (docs/design-decisions.md);
+    relaxation: κ_σ of the relaxation homotopy (Scholtes' relaxation driven by the barrier
+    parameter, as interior-point methods for MPCCs do: Raghunathan & Biegler 2005): the bounds of
+    the rows that the NLP marks (``StagewiseNLP.path_relaxation``: the complementarity rows)
+    widened by σ = κ_σ (μ − μ_floor) / s_f in the rows' units (s_f the cost's scaling factor:
+    μ / s_f is the barrier parameter in the NLP's cost units), so that σ changes only with μ,
+    when the filter is reset anyway, and vanishes at the barrier floor, where the solve
+    converges to the NLP itself; 0 (default) turns it off. 1e-3 took the published take-off
+    from 307 to 114 iterations and the jump from 219 to 97, but leads the 14-knot take-off to an
+    optimum of the published NLP that pushes with a corner in the air (docs/design-decisions.md);
     progress: called on the host after every iteration as progress(iteration, record) with
     record the history row (``HISTORY_COLUMNS``); None (default) stays silent.
     """
@@ -121,6 +130,7 @@ class Options:
     max_restoration_iterations: int = 100
     slack_start: str = "pushed"
     ipopt_slacks: bool = False
+    relaxation: float = 0.0
     progress: Callable | None = None
 
     def __post_init__(self):
@@ -130,6 +140,8 @@ class Options:
             raise ValueError(f"Options.regularisation_decrease must be in (0, 1], got {self.regularisation_decrease!r}")
         if not 0 < self.short_step <= 1:
             raise ValueError(f"Options.short_step must be in (0, 1], got {self.short_step!r}")
+        if not self.relaxation >= 0:
+            raise ValueError(f"Options.relaxation must be ≥ 0 (0 turns the homotopy off), got {self.relaxation!r}")
         if self.max_short_steps < 0:
             raise ValueError(f"Options.max_short_steps must be ≥ 0 (0 turns the rule off), got {self.max_short_steps!r}")
 

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 
 from jaxmm.solver import barrier, filter as filters, rows
 from jaxmm.solver.options import RESTORATION_PENALTY, Status
-from jaxmm.solver.scaling import violation
 from jaxmm.solver.trees import dot, l1, max_abs, select, tmap
 
 
@@ -68,7 +67,7 @@ def outcome(problem, options, state, step):
         theta_new, phi_new, state.filter.theta, state.filter.phi)
     count = state.counters.restoration_iterations + 1
     failed = ~done & (~found | (count >= options.max_restoration_iterations))
-    v_new, _ = violation(problem.nlp, P_new[0], P_new[1], r_new)
+    v_new, _ = problem.violation(P_new, r_new)
     # Back in the barrier problem, the bound multipliers start on its central path.
     dl_new, du_new = barrier.distances(P_new, b)
     zl_new = tmap(lambda z, a, m: jnp.where(done & m, state.mu / a, z), zl_new, dl_new, b.has_lower)

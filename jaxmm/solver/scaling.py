@@ -16,15 +16,26 @@ def outside(value, lower, upper):
     return jnp.maximum(jnp.maximum(lower - value, value - upper), 0.0)
 
 
-def violation(nlp, Z, theta, r=None):
+def relaxed(nlp, path, transition, sigma):
+    """The inequality rows path (K, mg) and transition (K − 1, mh) with the bounds that ``nlp``
+    marks widened by σ (the NLP's units; None: none): g − sign · σ, so that the bound g ≤ u + σ
+    reads g − σ ≤ u (Scholtes' relaxation, ``StagewiseNLP.path_relaxation``)."""
+    if nlp.path_relaxation is None or sigma is None:
+        return path, transition
+    return path - sigma * nlp.path_relaxation, transition - sigma * nlp.transition_relaxation
+
+
+def violation(nlp, Z, theta, r=None, sigma=None):
     """Max constraint violation over every group (the NLP's units) and per group; ``r``: the
-    residuals at (Z, θ) when they are at hand."""
+    residuals at (Z, θ) when they are at hand; σ: the relaxation of the marked rows' bounds
+    (``relaxed``), None for the NLP itself."""
     r = stagewise.residuals(nlp, Z, theta) if r is None else r
+    path, transition = relaxed(nlp, r.path_inequality, r.transition_inequality, sigma)
     groups = dict(
         path_equality=jnp.abs(r.path_equality),
         transition_equality=jnp.abs(r.transition_equality),
-        path_inequality=outside(r.path_inequality, nlp.path_lower, nlp.path_upper),
-        transition_inequality=outside(r.transition_inequality, nlp.transition_lower, nlp.transition_upper),
+        path_inequality=outside(path, nlp.path_lower, nlp.path_upper),
+        transition_inequality=outside(transition, nlp.transition_lower, nlp.transition_upper),
         z_box=outside(Z, nlp.z_lower, nlp.z_upper),
         theta_box=outside(theta, nlp.theta_lower, nlp.theta_upper),
     )
@@ -53,24 +64,31 @@ class ScaledProblem:
     """The stage-wise ``nlp`` in the solver's units: cost × cost_scale, rows × row_scale (the
     four groups' (R, m) factors), inequality rows g − s with the slacks s in scaled units;
     ``active``: the inequality rows with a finite bound (the others constrain nothing: their
-    slack follows g); ``bounds``: the primal leaves' ``barrier.Bounds``."""
+    slack follows g); ``bounds``: the primal leaves' ``barrier.Bounds``; sigma: the relaxation σ
+    of the marked rows' bounds (``relaxed``) in the NLP's units, None for the NLP itself."""
 
     nlp: stagewise.StagewiseNLP
     cost_scale: jnp.ndarray
     row_scale: tuple
     active: tuple
     bounds: barrier.Bounds
+    sigma: jnp.ndarray | None = None
 
     def constraints(self, P, r):
         """The scaled equality residuals (c, g − s) of the four groups at P = (Z, θ, slacks),
         from the NLP's residuals r there."""
         s = self.row_scale
+        path, transition = relaxed(self.nlp, r.path_inequality, r.transition_inequality, self.sigma)
         return (
             r.path_equality * s[0],
             r.transition_equality * s[1],
-            (r.path_inequality * s[2] - P[2]) * self.active[0],
-            (r.transition_inequality * s[3] - P[3]) * self.active[1],
+            (path * s[2] - P[2]) * self.active[0],
+            (transition * s[3] - P[3]) * self.active[1],
         )
+
+    def violation(self, P, r):
+        """The violation (``violation``) of the relaxed NLP at P, from its residuals r."""
+        return violation(self.nlp, P[0], P[1], r, self.sigma)
 
     def evaluate(self, P):
         """(scaled cost, scaled residuals (``constraints``), the NLP's ``stagewise.Residuals``) at P."""
@@ -78,11 +96,12 @@ class ScaledProblem:
         return self.cost_scale * r.cost, self.constraints(P, r), r
 
 
-def scaled_problem(nlp, factors):
-    """The ``ScaledProblem`` of ``nlp`` with factors = (cost factor, per-row factors)."""
+def scaled_problem(nlp, factors, sigma=None):
+    """The ``ScaledProblem`` of ``nlp`` with factors = (cost factor, per-row factors) and the
+    relaxation σ of its marked rows."""
     cost_scale, row_factors = factors[0], tuple(factors[1])
     active = (
         jnp.broadcast_to(jnp.isfinite(nlp.path_lower) | jnp.isfinite(nlp.path_upper), row_factors[2].shape),
         jnp.broadcast_to(jnp.isfinite(nlp.transition_lower) | jnp.isfinite(nlp.transition_upper), row_factors[3].shape),
     )
-    return ScaledProblem(nlp, cost_scale, row_factors, active, barrier.bounds(nlp, row_factors[2:]))
+    return ScaledProblem(nlp, cost_scale, row_factors, active, barrier.bounds(nlp, row_factors[2:]), sigma)

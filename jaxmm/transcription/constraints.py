@@ -21,6 +21,7 @@ TRANSITION_EQUALITIES = (
 )
 PATH_INEQUALITIES = ("friction_cone", "normal_complementarity", "corner_com", "jet_com")
 TRANSITION_INEQUALITIES = ("planar_complementarity",)
+COMPLEMENTARITY = ("normal_complementarity", "planar_complementarity")  # eq. (20, 21)
 # Beyond the paper: |τ_j| ≤ τ_max,j at knots 1..N, where the task asks for it.
 JOINT_TORQUE = "joint_torque"
 

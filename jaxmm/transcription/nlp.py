@@ -341,14 +341,24 @@ FUNCTIONS = StagewiseFunctions(
 )
 
 
+def _relaxation(bounds, names):
+    """Per row of the families ``names`` (their ``bounds``): the bound that the solver's
+    relaxation homotopy widens, +1 the upper, −1 the lower, on the complementarity rows of eq.
+    (20, 21) only (Scholtes' relaxation, f_z c_z ≤ ε_n + σ); 0 elsewhere."""
+    signs = [jnp.where(jnp.isfinite(bounds[name][1]), 1.0, -1.0) if name in constraints.COMPLEMENTARITY
+             else jnp.zeros_like(bounds[name][1]) for name in names]
+    return jnp.concatenate(signs)
+
+
 def stagewise_nlp(task):
     """The task's NLP in the stage-wise format, over scaled variables (z̃ = z / d, θ = (T_total,))."""
     layout = task.layout
     scale = layout.scale()
     lower, upper = constraints.variable_bounds(task)
     bounds = constraints.inequality_bounds(task)
+    transition_families = constraints.transition_inequality_families(task)
     path = [bounds[name] for name in constraints.PATH_INEQUALITIES]
-    transition = [bounds[name] for name in constraints.transition_inequality_families(task)]
+    transition = [bounds[name] for name in transition_families]
     return StagewiseNLP(
         args=task,
         knot_data=jnp.asarray(costs.knot_roles(task.n_knots)),
@@ -361,6 +371,8 @@ def stagewise_nlp(task):
         transition_lower=jnp.concatenate([b[0] for b in transition]),
         transition_upper=jnp.concatenate([b[1] for b in transition]),
         functions=FUNCTIONS,
+        path_relaxation=_relaxation(bounds, constraints.PATH_INEQUALITIES),
+        transition_relaxation=_relaxation(bounds, transition_families),
     )
 
 
