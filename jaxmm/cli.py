@@ -134,7 +134,7 @@ def _task(args):
 
 
 def _options(args):
-    """The solver options of ``args`` (--max-iterations, --ipopt-slacks)."""
+    """The solver options of ``args`` (--max-iterations, --ipopt-slacks, --relaxation)."""
     from jaxmm import programs
 
     options = programs.DEFAULT_OPTIONS
@@ -142,6 +142,8 @@ def _options(args):
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     if getattr(args, "ipopt_slacks", False):
         options = dataclasses.replace(options, ipopt_slacks=True)
+    if getattr(args, "relaxation", None) is not None:
+        options = dataclasses.replace(options, relaxation=args.relaxation)
     return options
 
 
@@ -330,6 +332,9 @@ def _scenario_arguments(parser):
     parser.add_argument("--ipopt-slacks", action="store_true",
                         help="regularise the inequality slacks as IPOPT does (δ_s = δ_w; take-off-and-landing "
                              "converges in fewer iterations; see the README)")
+    parser.add_argument("--relaxation", type=float, metavar="K",
+                        help="relax the contact complementarity by σ = K (μ − μ_floor) / s_f, driven to 0 with the "
+                             "barrier parameter (Scholtes' homotopy; 1e-3 serves the published sizes; default 0, off)")
     parser.add_argument("--time-budget", type=float, metavar="S",
                         help="stop iterating after S seconds and keep the last iterate (default: no limit)")
     cache = parser.add_mutually_exclusive_group()
@@ -386,8 +391,9 @@ def main(argv=None):
         parser.error(f"--knots must be at least 2, got {args.knots}")
     if getattr(args, "guesses", None) is not None and args.guesses < 1:
         parser.error(f"--guesses must be at least 1, got {args.guesses}")
-    if getattr(args, "guesses", None) is not None and args.guesses < 1:
-        parser.error(f"--guesses must be at least 1, got {args.guesses}")
+    relaxation = getattr(args, "relaxation", None)
+    if relaxation is not None and not 0 <= relaxation < float("inf"):
+        parser.error(f"--relaxation must be a finite number ≥ 0, got {relaxation}")
     budget = getattr(args, "time_budget", None)
     if budget is not None and not 0 < budget < float("inf"):
         parser.error(f"--time-budget must be a positive number of seconds, got {budget}")

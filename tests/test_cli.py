@@ -170,6 +170,16 @@ def test_knots_below_two_is_a_usage_error(capsys):
     assert exit.value.code == 2 and "--guesses must be at least 1" in capsys.readouterr().err
 
 
+def test_relaxation_sets_the_solver_option_and_a_negative_one_is_a_usage_error(capsys):
+    from jaxmm import cli, programs
+
+    args = argparse.Namespace(max_iterations=None, ipopt_slacks=False, relaxation=1e-3)
+    assert cli._options(args) == dataclasses.replace(programs.DEFAULT_OPTIONS, relaxation=1e-3)
+    with pytest.raises(SystemExit) as exit:
+        main(["solve", "take-off", "--relaxation", "-1"])
+    assert exit.value.code == 2 and "--relaxation must be a finite number ≥ 0" in capsys.readouterr().err
+
+
 def test_an_unconverged_solve_is_written_and_reported_with_exit_1(solved_take_off, tmp_path, capsys, monkeypatch):
     """The outputs of a solve that stopped early and fails validate: written all the same, the
     failure named in the summary, exit status 1."""
