@@ -133,7 +133,7 @@ def _task(args):
     return tasks.scenario(args.scenario, robot=robot, knots=args.knots, keep_horizon=True, **overrides)
 
 
-def _options(args):
+def solver_options(args):
     """The solver options of ``args`` (--max-iterations, --ipopt-slacks, --relaxation)."""
     from jaxmm import programs
 
@@ -150,7 +150,7 @@ def _options(args):
 def _solve(task, args, progress):
     from jaxmm import programs
 
-    options = _options(args)
+    options = solver_options(args)
     if progress.live:
         options = dataclasses.replace(options, progress=progress.iteration)
     with progress.compiling(f"the solve of {task.name} (N = {task.n_intervals})") as compiling:
@@ -225,7 +225,7 @@ def _multistart_command(args):
     task = _task(args)
     out = pathlib.Path(args.out if args.out is not None else pathlib.Path("jaxmm-results") / f"{task.name}-multistart")
     out.mkdir(parents=True, exist_ok=True)
-    options = _options(args)
+    options = solver_options(args)
     guesses = batch.sample_guesses(task, jax.random.key(args.seed), args.guesses)
     start = time.perf_counter()
     solved = batch.solve_batch(task, guesses, options, strategy=args.strategy, time_budget=args.time_budget,

@@ -174,7 +174,7 @@ def test_relaxation_sets_the_solver_option_and_a_negative_one_is_a_usage_error(c
     from jaxmm import cli, programs
 
     args = argparse.Namespace(max_iterations=None, ipopt_slacks=False, relaxation=1e-3)
-    assert cli._options(args) == dataclasses.replace(programs.DEFAULT_OPTIONS, relaxation=1e-3)
+    assert cli.solver_options(args) == dataclasses.replace(programs.DEFAULT_OPTIONS, relaxation=1e-3)
     with pytest.raises(SystemExit) as exit:
         main(["solve", "take-off", "--relaxation", "-1"])
     assert exit.value.code == 2 and "--relaxation must be a finite number ≥ 0" in capsys.readouterr().err
