@@ -94,7 +94,7 @@ def _relaxation(options, mu, cost_scale):
     return options.relaxation * jnp.maximum(mu - options.barrier_floor, 0.0) / cost_scale
 
 
-def _in_scaling(nlp, state, factors, y, sigma=None):
+def _in_scaling(nlp, state, factors, y, sigma):
     """``state`` (at the starting point, with its residuals there) in the scaling ``factors``
     (cost factor, per-row factors): the slacks at the rows of ``state.first_pass`` pushed inside
     their scaled bounds (the primal (Z, θ) is inside already, and the push leaves it), the
