@@ -56,12 +56,17 @@ IPOPT's δ_s = δ_w), in every scenario or, given a comma-separated list, in tho
 it applies to are marked. --slack-start guess starts the slacks at the rows' values at the guess
 itself instead of at the pushed guess (``Options.slack_start``).
 
+--relaxation K solves with the relaxation homotopy (``Options(relaxation=K)``: Scholtes' σ driven
+by μ; IPOPT unchanged). --exact [SIGMA] solves, on both sides, ``tasks.exact_complementarity(task,
+SIGMA)`` (f_z c_z, |f_z Δc| ≤ SIGMA [N m, default 1e-6], no slack) instead of the published NLP.
+
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.
 
 Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
        [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M] [--coarse NC]
        [--ipopt-slacks [take_off,...]] [--slack-start pushed|guess] [--elastic] [--smooth-start]
+       [--relaxation K] [--exact [SIGMA]]
 """
 
 import os
@@ -152,11 +157,13 @@ def verdict(report):
 
 
 def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack_penalty, coarse, save=None,
-                 elastic=None):
+                 elastic=None, exact=None):
     """Everything printed about one scenario, as a dict; IPOPT too if urdf_path is given; our
     solution written to the directory ``save`` (``jaxmm.io.save``: trajectory, multipliers, the
-    per-iteration history) if given; ours by ``solve_elastic`` with ``elastic`` (its keyword arguments)."""
+    per-iteration history) if given; ours by ``solve_elastic`` with ``elastic`` (its keyword arguments);
+    both sides on ``tasks.exact_complementarity(task, exact)`` where ``exact`` (σ [N m]) is given."""
     task = tasks.scenario(name, knots=knots, slack_penalty=slack_penalty)
+    task = task if exact is None else tasks.exact_complementarity(task, exact)
     guess = tasks.initial_guess(task)
     label = name if slack_penalty == "linear" else f"{name} ({slack_penalty} slacks)"
     label = label if coarse is None else f"{label}, from N = {coarse}"
@@ -164,6 +171,8 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
     label = label if options.slack_start == ip.Options.slack_start else f"{label}, slacks from the {options.slack_start}"
     smooth = ", smooth start" if elastic is not None and elastic["smooth_start"] else ""
     label = label if elastic is None else f"{label}, solve_elastic{smooth}"
+    label = label if not options.relaxation else f"{label}, relaxation {options.relaxation:g}"
+    label = label if exact is None else f"{label}, exact (σ = {exact:g} N m)"
     row = dict(name=label, N=task.n_intervals, sizes=sizes(task, guess))
     log(f"{name} N = {task.n_intervals}: compiling our solve...")
     compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse, elastic)
@@ -317,7 +326,15 @@ def main():
     parser.add_argument("--save", default=None, metavar="DIR",
                         help="write each of our solutions to DIR/<scenario>_N<N>.npz (jaxmm.io.save; with its "
                              "per-iteration history)")
+    parser.add_argument("--relaxation", type=float, default=0.0, metavar="K",
+                        help="our solver with the relaxation homotopy, Options(relaxation=K) (default 0: off)")
+    parser.add_argument("--exact", type=float, nargs="?", const=1e-6, default=None, metavar="SIGMA",
+                        help="both sides on tasks.exact_complementarity(task, SIGMA) (default SIGMA 1e-6 N m)")
     args = parser.parse_args()
+    if not (args.relaxation >= 0 and np.isfinite(args.relaxation)):
+        parser.error(f"--relaxation must be a finite number ≥ 0, got {args.relaxation}")
+    if args.exact is not None and not (args.exact >= 0 and np.isfinite(args.exact)):
+        parser.error(f"--exact must be a finite number ≥ 0 [N m], got {args.exact}")
     elastic = dict(smooth_start=args.smooth_start) if args.elastic or args.smooth_start else None
     if elastic is not None and args.coarse is not None:
         parser.error("--elastic and --coarse cannot be combined")
@@ -326,7 +343,7 @@ def main():
 
     run_scenarios = args.scenarios is not None or args.knots is None
     names = parse_names(parser, args.scenarios, default=list(tasks.SCENARIOS))
-    options = dataclasses.replace(solve.DEFAULT_OPTIONS, slack_start=args.slack_start)
+    options = dataclasses.replace(solve.DEFAULT_OPTIONS, slack_start=args.slack_start, relaxation=args.relaxation)
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     slack_names = names if args.ipopt_slacks == "all" else parse_names(parser, args.ipopt_slacks, default=[])
@@ -345,7 +362,7 @@ def main():
                 rows.append(run_scenario(
                     name, args.knots_override, dataclasses.replace(options, ipopt_slacks=name in slack_names), args.repeats,
                     urdf.name if args.ipopt else None, args.max_iterations,
-                    args.slack_penalty, args.coarse, args.save, elastic,
+                    args.slack_penalty, args.coarse, args.save, elastic, args.exact,
                 ))
     knot_table = None
     if args.knots is not None:

@@ -27,6 +27,7 @@ from conftest import REDUCED_TAKE_OFF
 
 UP = dict(REDUCED_TAKE_OFF, final_com=(0.0, 0.0, 0.95))
 SIGMA = 1e-6  # [N m]: at most 1e-4 N on a corner 1 cm up
+HOMOTOPY = dataclasses.replace(DEFAULT_OPTIONS, relaxation=1e-3)  # Scholtes' σ driven by μ (docs/solver.md)
 _SOLVED = {}  # (name, overrides) → (task, TaskSolution): the published NLP solved once per case
 
 
@@ -89,14 +90,20 @@ def test_the_relaxation_homotopy_finds_a_lower_exact_optimum_from_the_published_
     task = tasks.exact_complementarity(tasks.scenario("take_off", **UP), SIGMA)
     alone = solve_task(task)
     assert alone.status is ip.Status.CONVERGED, alone.status.message
-    homotopy = solve_task(task, options=dataclasses.replace(DEFAULT_OPTIONS, relaxation=1e-3))
-    assert homotopy.status is ip.Status.CONVERGED, homotopy.status.message
-    assert float(homotopy.solution.violation) <= DEFAULT_OPTIONS.tolerance
-    measure = analysis.complementarity(homotopy.trajectory)
-    assert max(measure["normal"], measure["planar"]) <= SIGMA + DEFAULT_OPTIONS.tolerance and measure["slack"] == 0
-    report = analysis.validate(task, homotopy.trajectory)
-    assert report.ok, str(report)
+    homotopy = solve_task(task, options=HOMOTOPY)
+    _exact_answer_is_physical(task, homotopy)
     assert float(homotopy.solution.objective) <= 0.95 * float(alone.solution.objective)
+
+
+def _exact_answer_is_physical(task, result):
+    """``result`` of the exact ``task`` converged, every product within σ (to the solver's
+    violation tolerance), no slack, and ``validate`` passes."""
+    assert result.status is ip.Status.CONVERGED, result.status.message
+    assert float(result.solution.violation) <= DEFAULT_OPTIONS.tolerance
+    measure = analysis.complementarity(result.trajectory)
+    assert max(measure["normal"], measure["planar"]) <= SIGMA + DEFAULT_OPTIONS.tolerance and measure["slack"] == 0
+    report = analysis.validate(task, result.trajectory)
+    assert report.ok, str(report)
 
 
 def _exact_and_physical(task, answer):
@@ -139,6 +146,17 @@ VARIANTS = [
 def test_the_elastic_continuation_is_exact_and_physical_on_other_tasks(name, overrides):
     task = tasks.scenario(name, **overrides)
     _exact_and_physical(task, solve_elastic(task, tolerance=SIGMA))
+
+
+# The exact task of the same variants, each solved once from the published guess with the
+# homotopy, none tuned (with the take-off 38 cm up above, eight): measured with XLA's defaults,
+# 608 iterations sideways, 243 in the short horizon, 287 forward, 425 backward, 736 at 20 knots,
+# 125 and 210 for the jumps (190 for 38 cm up).
+@pytest.mark.slow
+@pytest.mark.parametrize("name, overrides", VARIANTS)
+def test_the_relaxation_homotopy_solves_other_exact_tasks_to_physical_answers(name, overrides):
+    task = tasks.exact_complementarity(tasks.scenario(name, **overrides), SIGMA)
+    _exact_answer_is_physical(task, solve_task(task, options=HOMOTOPY))
 
 
 def test_the_smooth_start_hands_the_squared_answer_to_the_published_penalty():
