@@ -121,16 +121,19 @@ def _ironcub_like(urdf):
     )
 
 
-def _task(args):
-    """The scenario of ``args`` (name, knots, target, URDF) as a Task. With fewer (or more) knots
-    than published, the time-step bounds scale so that the horizon stays the published one."""
+def scenario_task(args):
+    """The scenario of ``args`` (name, knots, target, URDF, --torque-limits, --exact) as a Task.
+    With fewer (or more) knots than published, the time-step bounds scale so that the horizon
+    stays the published one; with --exact σ, ``tasks.exact_complementarity(task, σ)``."""
     from jaxmm import tasks
 
     overrides = {} if args.target is None else dict(final_com=args.target)
     if getattr(args, "torque_limits", False):
         overrides["joint_torque_limits"] = True
     robot = None if args.urdf is None else _ironcub_like(args.urdf)
-    return tasks.scenario(args.scenario, robot=robot, knots=args.knots, keep_horizon=True, **overrides)
+    task = tasks.scenario(args.scenario, robot=robot, knots=args.knots, keep_horizon=True, **overrides)
+    exact = getattr(args, "exact", None)
+    return task if exact is None else tasks.exact_complementarity(task, exact)
 
 
 def solver_options(args):
@@ -180,7 +183,7 @@ def _solve_command(args):
     from jaxmm import analysis, io
 
     progress = Progress(Progress.detect(args.quiet))
-    task = _task(args)
+    task = scenario_task(args)
     out = pathlib.Path(args.out if args.out is not None else pathlib.Path("jaxmm-results") / task.name)
     out.mkdir(parents=True, exist_ok=True)
     result, compile_time, solve_time = _solve(task, args, progress)
@@ -222,7 +225,7 @@ def _multistart_command(args):
     from jaxmm import analysis, batch, io
 
     progress = Progress(Progress.detect(args.quiet))
-    task = _task(args)
+    task = scenario_task(args)
     out = pathlib.Path(args.out if args.out is not None else pathlib.Path("jaxmm-results") / f"{task.name}-multistart")
     out.mkdir(parents=True, exist_ok=True)
     options = solver_options(args)
@@ -284,7 +287,7 @@ def _compare_command(args):
     from jaxmm.tasks import initial_guess
 
     progress = Progress(Progress.detect(args.quiet))
-    task = _task(args)
+    task = scenario_task(args)
     result, compile_time, solve_time = _solve(task, args, progress)
     logging.getLogger("yourdfpy").setLevel(logging.ERROR)
     with tempfile.TemporaryDirectory() as directory:
@@ -335,6 +338,9 @@ def _scenario_arguments(parser):
     parser.add_argument("--relaxation", type=float, metavar="K",
                         help="relax the contact complementarity by σ = K (μ − μ_floor) / s_f, driven to 0 with the "
                              "barrier parameter (Scholtes' homotopy; 1e-3 serves the published sizes; default 0, off)")
+    parser.add_argument("--exact", type=float, nargs="?", const=1e-6, metavar="SIGMA",
+                        help="contact complementarity within SIGMA [N m, default 1e-6] and no slack instead of the "
+                             "published relaxation (tasks.exact_complementarity; with --relaxation 1e-3 from the guess)")
     parser.add_argument("--time-budget", type=float, metavar="S",
                         help="stop iterating after S seconds and keep the last iterate (default: no limit)")
     cache = parser.add_mutually_exclusive_group()
@@ -394,6 +400,9 @@ def main(argv=None):
     relaxation = getattr(args, "relaxation", None)
     if relaxation is not None and not 0 <= relaxation < float("inf"):
         parser.error(f"--relaxation must be a finite number ≥ 0, got {relaxation}")
+    exact = getattr(args, "exact", None)
+    if exact is not None and not 0 <= exact < float("inf"):
+        parser.error(f"--exact must be a finite number ≥ 0 [N m], got {exact}")
     budget = getattr(args, "time_budget", None)
     if budget is not None and not 0 < budget < float("inf"):
         parser.error(f"--time-budget must be a positive number of seconds, got {budget}")

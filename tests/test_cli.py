@@ -180,6 +180,19 @@ def test_relaxation_sets_the_solver_option_and_a_negative_one_is_a_usage_error(c
     assert exit.value.code == 2 and "--relaxation must be a finite number ≥ 0" in capsys.readouterr().err
 
 
+def test_exact_solves_the_exact_task_and_a_negative_sigma_is_a_usage_error(capsys):
+    from jaxmm import cli
+
+    args = argparse.Namespace(scenario="take-off", knots=14, target=None, urdf=None, torque_limits=False, exact=1e-6)
+    exact = cli.scenario_task(args)
+    assert float(exact.params.complementarity_tolerance) == 1e-6 and float(exact.params.slack_limit) == 0.0
+    published = cli.scenario_task(argparse.Namespace(**{**vars(args), "exact": None}))
+    assert float(published.params.complementarity_tolerance) == 0.0 and float(published.params.slack_limit) == float("inf")
+    with pytest.raises(SystemExit) as exit:
+        main(["solve", "take-off", "--exact", "-1"])
+    assert exit.value.code == 2 and "--exact must be a finite number ≥ 0" in capsys.readouterr().err
+
+
 def test_an_unconverged_solve_is_written_and_reported_with_exit_1(solved_take_off, tmp_path, capsys, monkeypatch):
     """The outputs of a solve that stopped early and fails validate: written all the same, the
     failure named in the summary, exit status 1."""
