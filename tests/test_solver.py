@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import jaxmm  # noqa: F401  (float64)
+from jaxmm.solver import filter as filters
 from jaxmm.solver import interior_point as ip
 from jaxmm.solver import scaling
 from jaxmm import stagewise
@@ -180,6 +181,28 @@ def test_short_steps_that_no_longer_cut_the_violation_start_the_restoration_phas
     assert history[first - 1, column("step_length")] == 0.0  # the iteration that gave up takes no step
     assert int(on.iterations) < int(off.iterations)
     assert float(on.violation) == pytest.approx(float(off.violation), rel=1e-9) and float(on.violation) > 1.0
+
+
+def test_a_restoration_point_within_tolerance_that_the_filter_blocks_ends_the_phase():
+    """Wächter & Biegler's example after its first iteration, put in the restoration phase by hand
+    with a filter entry that turns down every point (violation −1, merit −1e300): the phase's
+    steps reach the constraints to within the tolerance, the phase ends there with the filter
+    emptied, and the solve converges. Without filter resets left (max_filter_resets = 0) the
+    phase cannot end, and fails at that feasible point: ``STALLED``, not ``INFEASIBLE``."""
+    nlp, Z0 = _wachter_biegler()
+    after_first = ip.advance(nlp, ip.start(nlp, Z0, jnp.zeros(1), OPTIONS), OPTIONS, until=1)
+    assert float(after_first.violation) > 0.1
+    blocking = filters.augment(after_first.filter, jnp.asarray(-1.0), jnp.asarray(-1e300), jnp.asarray(True))
+    entered = dataclasses.replace(after_first, restoring=jnp.asarray(True), filter=blocking,
+                                  restoration_theta=jnp.asarray(1e10))
+    restored = ip.advance(nlp, entered, OPTIONS)
+    assert ip.Status(int(restored.status)) is ip.Status.CONVERGED
+    history = np.asarray(restored.history)[: int(restored.iterations)]
+    assert history[1, ip.HISTORY_COLUMNS.index("restoration")] == 1 and not bool(restored.restoring)
+    no_resets = dataclasses.replace(OPTIONS, max_filter_resets=0, max_restoration_iterations=20)
+    stuck = ip.advance(nlp, entered, no_resets)
+    assert ip.Status(int(stuck.status)) is ip.Status.STALLED and float(stuck.violation) <= OPTIONS.tolerance
+    assert np.all(np.asarray(stuck.history)[2: int(stuck.iterations), ip.HISTORY_COLUMNS.index("restoration")] == 1)
 
 
 def test_bad_short_step_options_are_refused_by_name():

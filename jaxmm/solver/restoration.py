@@ -8,9 +8,10 @@ RESTORATION_PENALTY, the cost left out) with the Gauss–Newton Hessian JᵀJ, d
 system, factorisation and solve as the barrier problem's (``newton``), with these terms instead
 of the Lagrangian's, and the same loop of trials (``line_search``) with an Armijo test on the
 measure. The phase ends, as IPOPT's, at a point that the filter (which holds the point the phase
-started from) accepts and whose infeasibility ‖c‖₁ is at most 0.9 of that point's; it fails
-(status ``INFEASIBLE``) when no step decreases its measure (a locally infeasible point) or after
-``max_restoration_iterations``. Back in the barrier problem the constraint multipliers start from
+started from) accepts and whose infeasibility ‖c‖₁ is at most 0.9 of that point's, or at such a
+point within the violation tolerance, the filter then emptied (``outcome``); it fails
+(status ``INFEASIBLE``, or ``STALLED`` at a point within the violation tolerance) when no step
+decreases its measure (a locally infeasible point) or after ``max_restoration_iterations``. Back in the barrier problem the constraint multipliers start from
 0 (IPOPT's default) and the bound multipliers on its central path (μ / distance)."""
 
 import dataclasses
@@ -63,11 +64,17 @@ def outcome(problem, options, state, step):
                                        tmap(lambda z, v: z + step_z * v, it.zu, d.dzu), P_new, mu, b)
     theta_new = l1(c_new)
     phi_new = f_new + barrier.value(P_new, b, state.mu)
-    done = found & (theta_new <= 0.9 * state.restoration_theta) & ~filters.in_filter(
-        theta_new, phi_new, state.filter.theta, state.filter.phi)
+    v_new, _ = problem.violation(P_new, r_new)
+    reduced = found & (theta_new <= 0.9 * state.restoration_theta)
+    blocked = filters.in_filter(theta_new, phi_new, state.filter.theta, state.filter.phi)
+    # A point within the violation tolerance that the filter still turns down (it holds points of
+    # less violation and lower merit from before the phase) ends the phase with the filter
+    # emptied, IPOPT's filter reset heuristic, at most max_filter_resets times per μ. With the
+    # resets spent, walk-to-fly's exact task spent 100 iterations at such a point (violation 5.5e-7).
+    feasible = reduced & blocked & (v_new <= options.tolerance) & (state.filter.resets < options.max_filter_resets)
+    done = reduced & (~blocked | feasible)
     count = state.counters.restoration_iterations + 1
     failed = ~done & (~found | (count >= options.max_restoration_iterations))
-    v_new, _ = problem.violation(P_new, r_new)
     # Back in the barrier problem, the bound multipliers start on its central path.
     dl_new, du_new = barrier.distances(P_new, b)
     zl_new = tmap(lambda z, a, m: jnp.where(done & m, state.mu / a, z), zl_new, dl_new, b.has_lower)
@@ -82,7 +89,10 @@ def outcome(problem, options, state, step):
         state, iterate=dataclasses.replace(it, P=P_new, zl=zl_new, zu=zu_new,
                                            y=jax.tree.map(lambda v: jnp.where(done, 0.0, v), it.y)),
         residuals=r_new, restoring=~done, counters=counters,
-        status=jnp.where(failed, int(Status.INFEASIBLE), int(Status.RUNNING)), violation=v_new,
+        filter=filters.reset(state.filter, state.theta_max, feasible, state.filter.resets + 1),
+        # A phase that fails at a point within the violation tolerance stopped feasible.
+        status=jnp.where(failed, jnp.where(v_new <= options.tolerance, int(Status.STALLED), int(Status.INFEASIBLE)),
+                         int(Status.RUNNING)), violation=v_new,
         # The regularisation escalated by the rejected steps before the phase is forgotten.
         forced=jnp.zeros_like(state.forced), regularisation=jnp.zeros_like(state.regularisation))
     return new, record
