@@ -397,12 +397,10 @@ def main(argv=None):
         parser.error(f"--knots must be at least 2, got {args.knots}")
     if getattr(args, "guesses", None) is not None and args.guesses < 1:
         parser.error(f"--guesses must be at least 1, got {args.guesses}")
-    relaxation = getattr(args, "relaxation", None)
-    if relaxation is not None and not 0 <= relaxation < float("inf"):
-        parser.error(f"--relaxation must be a finite number ≥ 0, got {relaxation}")
-    exact = getattr(args, "exact", None)
-    if exact is not None and not 0 <= exact < float("inf"):
-        parser.error(f"--exact must be a finite number ≥ 0 [N m], got {exact}")
+    for flag, unit in (("relaxation", ""), ("exact", " [N m]")):
+        value = getattr(args, flag, None)
+        if value is not None and not 0 <= value < float("inf"):
+            parser.error(f"--{flag} must be a finite number ≥ 0{unit}, got {value}")
     budget = getattr(args, "time_budget", None)
     if budget is not None and not 0 < budget < float("inf"):
         parser.error(f"--time-budget must be a positive number of seconds, got {budget}")

@@ -9,10 +9,11 @@ system, factorisation and solve as the barrier problem's (``newton``), with thes
 of the Lagrangian's, and the same loop of trials (``line_search``) with an Armijo test on the
 measure. The phase ends, as IPOPT's, at a point that the filter (which holds the point the phase
 started from) accepts and whose infeasibility ‖c‖₁ is at most 0.9 of that point's, or at such a
-point within the violation tolerance, the filter then emptied (``outcome``); it fails
-(status ``INFEASIBLE``, or ``STALLED`` at a point within the violation tolerance) when no step
-decreases its measure (a locally infeasible point) or after ``max_restoration_iterations``. Back in the barrier problem the constraint multipliers start from
-0 (IPOPT's default) and the bound multipliers on its central path (μ / distance)."""
+point within the violation tolerance, the filter then emptied (``outcome``); it fails (status
+``INFEASIBLE``, or ``STALLED`` at a point within the violation tolerance) when no step decreases
+its measure (a locally infeasible point) or after ``max_restoration_iterations``. Back in the
+barrier problem the constraint multipliers start from 0 (IPOPT's default) and the bound
+multipliers on its central path (μ / distance)."""
 
 import dataclasses
 
@@ -71,7 +72,8 @@ def outcome(problem, options, state, step):
     # less violation and lower merit from before the phase) ends the phase with the filter
     # emptied, IPOPT's filter reset heuristic, at most max_filter_resets times per μ. With the
     # resets spent, walk-to-fly's exact task spent 100 iterations at such a point (violation 5.5e-7).
-    feasible = reduced & blocked & (v_new <= options.tolerance) & (state.filter.resets < options.max_filter_resets)
+    within = v_new <= options.tolerance
+    feasible = reduced & blocked & within & (state.filter.resets < options.max_filter_resets)
     done = reduced & (~blocked | feasible)
     count = state.counters.restoration_iterations + 1
     failed = ~done & (~found | (count >= options.max_restoration_iterations))
@@ -91,8 +93,8 @@ def outcome(problem, options, state, step):
         residuals=r_new, restoring=~done, counters=counters,
         filter=filters.reset(state.filter, state.theta_max, feasible, state.filter.resets + 1),
         # A phase that fails at a point within the violation tolerance stopped feasible.
-        status=jnp.where(failed, jnp.where(v_new <= options.tolerance, int(Status.STALLED), int(Status.INFEASIBLE)),
-                         int(Status.RUNNING)), violation=v_new,
+        status=jnp.where(failed, jnp.where(within, int(Status.STALLED), int(Status.INFEASIBLE)), int(Status.RUNNING)),
+        violation=v_new,
         # The regularisation escalated by the rejected steps before the phase is forgotten.
         forced=jnp.zeros_like(state.forced), regularisation=jnp.zeros_like(state.regularisation))
     return new, record
