@@ -58,7 +58,8 @@ itself instead of at the pushed guess (``Options.slack_start``).
 
 --relaxation K solves with the relaxation homotopy (``Options(relaxation=K)``: Scholtes' σ driven
 by μ; IPOPT unchanged). --exact [SIGMA] solves, on both sides, ``tasks.exact_complementarity(task,
-SIGMA)`` (f_z c_z, |f_z Δc| ≤ SIGMA [N m, default 1e-6], no slack) instead of the published NLP.
+SIGMA, SIGMA_T)`` (f_z c_z ≤ SIGMA [N m, default 1e-6], |f_z Δc| ≤ SIGMA_T [N m,
+--planar-tolerance, default ``tasks.PLANAR_TOLERANCE``], no slack) instead of the published NLP.
 
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.
@@ -66,7 +67,7 @@ IPOPT's ``max_iter``, for quick runs.
 Usage: python benchmarks/solve_scenarios.py [--scenarios take_off,jumping,...] [--knots-override N]
        [--ipopt] [--knots [60,100,200,400]] [--repeats 3] [--max-iterations M] [--coarse NC]
        [--ipopt-slacks [take_off,...]] [--slack-start pushed|guess] [--elastic] [--smooth-start]
-       [--relaxation K] [--exact [SIGMA]]
+       [--relaxation K] [--exact [SIGMA]] [--planar-tolerance SIGMA_T]
 """
 
 import os
@@ -161,9 +162,10 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
     """Everything printed about one scenario, as a dict; IPOPT too if urdf_path is given; our
     solution written to the directory ``save`` (``jaxmm.io.save``: trajectory, multipliers, the
     per-iteration history) if given; ours by ``solve_elastic`` with ``elastic`` (its keyword arguments);
-    both sides on ``tasks.exact_complementarity(task, exact)`` where ``exact`` (σ [N m]) is given."""
+    both sides on ``tasks.exact_complementarity(task, *exact)`` where ``exact`` (σ_n, σ_t [N m]) is
+    given."""
     task = tasks.scenario(name, knots=knots, slack_penalty=slack_penalty)
-    task = task if exact is None else tasks.exact_complementarity(task, exact)
+    task = task if exact is None else tasks.exact_complementarity(task, *exact)
     guess = tasks.initial_guess(task)
     label = name if slack_penalty == "linear" else f"{name} ({slack_penalty} slacks)"
     label = label if coarse is None else f"{label}, from N = {coarse}"
@@ -172,7 +174,7 @@ def run_scenario(name, knots, options, repeats, urdf_path, ipopt_max_iter, slack
     smooth = ", smooth start" if elastic is not None and elastic["smooth_start"] else ""
     label = label if elastic is None else f"{label}, solve_elastic{smooth}"
     label = label if not options.relaxation else f"{label}, relaxation {options.relaxation:g}"
-    label = label if exact is None else f"{label}, exact (σ = {exact:g} N m)"
+    label = label if exact is None else f"{label}, exact (σ_n = {exact[0]:g}, σ_t = {exact[1]:g} N m)"
     row = dict(name=label, N=task.n_intervals, sizes=sizes(task, guess))
     log(f"{name} N = {task.n_intervals}: compiling our solve...")
     compile_time, solve_time, result, rough = solve_ours(task, guess, options, repeats, coarse, elastic)
@@ -330,11 +332,15 @@ def main():
                         help="our solver with the relaxation homotopy, Options(relaxation=K) (default 0: off)")
     parser.add_argument("--exact", type=float, nargs="?", const=1e-6, default=None, metavar="SIGMA",
                         help="both sides on tasks.exact_complementarity(task, SIGMA) (default SIGMA 1e-6 N m)")
+    parser.add_argument("--planar-tolerance", type=float, default=tasks.PLANAR_TOLERANCE, metavar="SIGMA_T",
+                        help="with --exact: the planar rows' σ_t [N m] (default tasks.PLANAR_TOLERANCE)")
     args = parser.parse_args()
     if not (args.relaxation >= 0 and np.isfinite(args.relaxation)):
         parser.error(f"--relaxation must be a finite number ≥ 0, got {args.relaxation}")
-    if args.exact is not None and not (args.exact >= 0 and np.isfinite(args.exact)):
-        parser.error(f"--exact must be a finite number ≥ 0 [N m], got {args.exact}")
+    for flag, value in (("--exact", args.exact), ("--planar-tolerance", args.planar_tolerance)):
+        if value is not None and not (value >= 0 and np.isfinite(value)):
+            parser.error(f"{flag} must be a finite number ≥ 0 [N m], got {value}")
+    exact = None if args.exact is None else (args.exact, args.planar_tolerance)
     elastic = dict(smooth_start=args.smooth_start) if args.elastic or args.smooth_start else None
     if elastic is not None and args.coarse is not None:
         parser.error("--elastic and --coarse cannot be combined")
@@ -362,7 +368,7 @@ def main():
                 rows.append(run_scenario(
                     name, args.knots_override, dataclasses.replace(options, ipopt_slacks=name in slack_names), args.repeats,
                     urdf.name if args.ipopt else None, args.max_iterations,
-                    args.slack_penalty, args.coarse, args.save, elastic, args.exact,
+                    args.slack_penalty, args.coarse, args.save, elastic, exact,
                 ))
     knot_table = None
     if args.knots is not None:

@@ -39,6 +39,9 @@ import threading
 import time
 
 ERRORS = (ValueError, KeyError, OSError, TypeError, ImportError)
+# κ_σ of the relaxation homotopy for --exact: the exact task from the published guess is solved
+# through Scholtes' relaxation driven by μ (docs/design-decisions.md, "Scholtes' relaxation driven by μ").
+EXACT_RELAXATION = 1e-3
 
 
 class Progress:
@@ -122,9 +125,10 @@ def _ironcub_like(urdf):
 
 
 def scenario_task(args):
-    """The scenario of ``args`` (name, knots, target, URDF, --torque-limits, --exact) as a Task.
-    With fewer (or more) knots than published, the time-step bounds scale so that the horizon
-    stays the published one; with --exact σ, ``tasks.exact_complementarity(task, σ)``."""
+    """The scenario of ``args`` (name, knots, target, URDF, --torque-limits, --exact,
+    --planar-tolerance) as a Task. With fewer (or more) knots than published, the time-step bounds
+    scale so that the horizon stays the published one; with --exact σ_n [--planar-tolerance σ_t],
+    ``tasks.exact_complementarity(task, σ_n, σ_t)``."""
     from jaxmm import tasks
 
     overrides = {} if args.target is None else dict(final_com=args.target)
@@ -132,12 +136,15 @@ def scenario_task(args):
         overrides["joint_torque_limits"] = True
     robot = None if args.urdf is None else _ironcub_like(args.urdf)
     task = tasks.scenario(args.scenario, robot=robot, knots=args.knots, keep_horizon=True, **overrides)
-    exact = getattr(args, "exact", None)
-    return task if exact is None else tasks.exact_complementarity(task, exact)
+    exact, planar = getattr(args, "exact", None), getattr(args, "planar_tolerance", None)
+    if exact is None:
+        return task
+    return tasks.exact_complementarity(task, exact, tasks.PLANAR_TOLERANCE if planar is None else planar)
 
 
 def solver_options(args):
-    """The solver options of ``args`` (--max-iterations, --ipopt-slacks, --relaxation)."""
+    """The solver options of ``args`` (--max-iterations, --ipopt-slacks, --relaxation); with
+    --exact and no --relaxation, the homotopy's κ_σ = ``EXACT_RELAXATION``."""
     from jaxmm import programs
 
     options = programs.DEFAULT_OPTIONS
@@ -145,8 +152,11 @@ def solver_options(args):
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     if getattr(args, "ipopt_slacks", False):
         options = dataclasses.replace(options, ipopt_slacks=True)
-    if getattr(args, "relaxation", None) is not None:
-        options = dataclasses.replace(options, relaxation=args.relaxation)
+    relaxation = getattr(args, "relaxation", None)
+    if relaxation is None and getattr(args, "exact", None) is not None:
+        relaxation = EXACT_RELAXATION
+    if relaxation is not None:
+        options = dataclasses.replace(options, relaxation=relaxation)
     return options
 
 
@@ -337,10 +347,15 @@ def _scenario_arguments(parser):
                              "converges in fewer iterations; see the README)")
     parser.add_argument("--relaxation", type=float, metavar="K",
                         help="relax the contact complementarity by σ = K (μ − μ_floor) / s_f, driven to 0 with the "
-                             "barrier parameter (Scholtes' homotopy; 1e-3 serves the published sizes; default 0, off)")
+                             "barrier parameter (Scholtes' homotopy; 1e-3 serves the published sizes; default: off, "
+                             "1e-3 with --exact)")
     parser.add_argument("--exact", type=float, nargs="?", const=1e-6, metavar="SIGMA",
                         help="contact complementarity within SIGMA [N m, default 1e-6] and no slack instead of the "
-                             "published relaxation (tasks.exact_complementarity; with --relaxation 1e-3 from the guess)")
+                             "published relaxation (tasks.exact_complementarity), solved through the homotopy "
+                             "(--relaxation 1e-3 unless given)")
+    parser.add_argument("--planar-tolerance", type=float, metavar="SIGMA_T",
+                        help="with --exact: the planar complementarity within SIGMA_T [N m, default 1e-4: a slip of "
+                             "at most 1 µm per interval under 100 N]")
     parser.add_argument("--time-budget", type=float, metavar="S",
                         help="stop iterating after S seconds and keep the last iterate (default: no limit)")
     cache = parser.add_mutually_exclusive_group()
@@ -397,10 +412,12 @@ def main(argv=None):
         parser.error(f"--knots must be at least 2, got {args.knots}")
     if getattr(args, "guesses", None) is not None and args.guesses < 1:
         parser.error(f"--guesses must be at least 1, got {args.guesses}")
-    for flag, unit in (("relaxation", ""), ("exact", " [N m]")):
+    for flag, unit in (("relaxation", ""), ("exact", " [N m]"), ("planar_tolerance", " [N m]")):
         value = getattr(args, flag, None)
         if value is not None and not 0 <= value < float("inf"):
-            parser.error(f"--{flag} must be a finite number ≥ 0{unit}, got {value}")
+            parser.error(f"--{flag.replace('_', '-')} must be a finite number ≥ 0{unit}, got {value}")
+    if getattr(args, "planar_tolerance", None) is not None and args.exact is None:
+        parser.error("--planar-tolerance applies to the exact task: give --exact too")
     budget = getattr(args, "time_budget", None)
     if budget is not None and not 0 < budget < float("inf"):
         parser.error(f"--time-budget must be a positive number of seconds, got {budget}")

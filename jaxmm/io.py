@@ -1,6 +1,6 @@
 """Saved solutions: a solved task written to one ``.npz`` file with a JSON header, and read back.
 
-The file (format ``jaxmm-solution``, version 6) holds NumPy arrays only (no pickles) and one
+The file (format ``jaxmm-solution``, version 7) holds NumPy arrays only (no pickles) and one
 JSON header ``__header__``:
 
 * ``format``, ``version``, ``jaxmm_version``, ``saved_at`` (UTC, ISO 8601);
@@ -20,7 +20,9 @@ factorisations of the inertia correction) are read too: their history gets the m
 as NaN. Files before version 5 (before the complementarity's σ and slack bound were task
 parameters) solved the published relaxation: σ = 0, ε_max = ∞. Files before version 6 (before
 the squared slack penalty was a weight) name their penalty in the task's ``slack_penalty``; it
-becomes the weights ``complementarity_slack`` and ``complementarity_slack_squared``.
+becomes the weights ``complementarity_slack`` and ``complementarity_slack_squared``. Files
+before version 7 (before the planar rows had a σ_t of their own) bounded them by σ_n: their
+``planar_tolerance`` is their ``complementarity_tolerance``.
 
 Arrays are named by their path in the skeleton (``trajectory.knots.com``). Files are written
 atomically: a temporary file in the same directory, renamed over the target once complete.
@@ -45,10 +47,12 @@ from jaxmm.transcription.problem import Task, TaskParams, Weights
 from jaxmm.transcription.variables import Knot, Trajectory
 
 FORMAT = "jaxmm-solution"
-VERSION = 6
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
-# The task parameters added by a version, with the value every older file solved with.
-_ADDED_PARAMS = {5: dict(complementarity_tolerance=0.0, slack_limit=float("inf"))}
+VERSION = 7
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
+# The task parameters added by a version, with the value every older file solved with: a number,
+# or the name of the older parameter that it was (the planar rows' σ_t was the normal rows' σ_n).
+_ADDED_PARAMS = {5: dict(complementarity_tolerance=0.0, slack_limit=float("inf")),
+                 7: dict(planar_tolerance="complementarity_tolerance")}
 HEADER = "__header__"
 _CLASSES = {cls.__name__: cls for cls in (Trajectory, Knot, ip.Solution, ip.Multipliers, TaskParams, Weights)}
 
@@ -107,7 +111,8 @@ def _decode_params(skeleton, arrays, version):
     """The ``TaskParams`` of a file's skeleton, the parameters newer than its version given the
     value that version solved with (``_ADDED_PARAMS``)."""
     added = {name: value for since, names in _ADDED_PARAMS.items() if version < since for name, value in names.items()}
-    fields = dict(skeleton["fields"], **{name: {"float": value} for name, value in added.items()})
+    fields = dict(skeleton["fields"], **{name: {"float": v} for name, v in added.items() if not isinstance(v, str)})
+    fields.update({name: fields[source] for name, source in added.items() if isinstance(source, str)})
     params = _decode(dict(skeleton, fields=fields), arrays)
     return dataclasses.replace(params, **{name: jax.numpy.asarray(getattr(params, name)) for name in added})
 

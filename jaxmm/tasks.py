@@ -13,6 +13,10 @@ from jaxmm.transcription.problem import INTEGRATION_RULES, Task, TaskParams, Wei
 from jaxmm.transcription.variables import Trajectory
 
 SLACK_PENALTIES = ("linear", "squared")
+# σ_t [N m] of the exact task's planar complementarity (eq. 21): a slip of at most 1 µm per
+# interval under 100 N; σ_t = σ_n = 1e-6 N m left take-off N = 70 unconverged after 3,000
+# iterations, σ_t = 1e-4 N m converged in 112 (docs/design-decisions.md).
+PLANAR_TOLERANCE = 1e-4
 
 _IRONCUB_WEIGHTS = dict(
     com_acc=1e5, com_vel=1e7, ang_mom_rate=1e4, ang_mom=1e4, joint_vel_upper=5e5,
@@ -125,6 +129,7 @@ def build_task(
     max_dt=0.10,
     gravity=(0.0, 0.0, -9.81),
     complementarity_tolerance=0.0,
+    planar_tolerance=None,
     slack_limit=np.inf,
     zero_initial_thrust=True,
     integration="trapezoidal",
@@ -137,14 +142,16 @@ def build_task(
     knots: N, the number of intervals (N + 1 knots, N ≥ 2). weights: {name: value} or
     ``Weights``. jet_coefficients (nj, 10) and max_thrust (nj,) are required when the robot
     has jets. joint_limits (n, 2) [rad] default to the URDF limits. upper_body_joints: names.
-    complementarity_tolerance, slack_limit: the complementarity rows' σ and the slacks' bound
-    (``TaskParams``; the defaults are the published relaxation). slack_penalty: "linear"
+    complementarity_tolerance, planar_tolerance, slack_limit: the normal and planar
+    complementarity rows' σ_n, σ_t and the slacks' bound (``TaskParams``; σ_t None: σ_n; the
+    defaults are the published relaxation). slack_penalty: "linear"
     (published) or "squared" (``with_slack_penalty``). joint_torque_limits: bound every
     joint torque by the URDF's effort limit (``Task.joint_torque_limits``; off in the paper's NLP).
     Raises ValueError naming the problem for inconsistent input.
     """
     model = robot.model
     nj = len(robot.jet_frames)
+    planar_tolerance = complementarity_tolerance if planar_tolerance is None else planar_tolerance
     if not isinstance(knots, (int, np.integer)) or knots < 2:
         raise ValueError(f"knots must be an integer N ≥ 2 (N + 1 knots), got {knots!r}")
     if integration not in INTEGRATION_RULES:
@@ -159,7 +166,9 @@ def build_task(
                         joint_velocity_limit=joint_velocity_limit, base_linear_velocity_limit=base_linear_velocity_limit,
                         base_angular_velocity_limit=base_angular_velocity_limit, com_xy_limit=com_xy_limit),
                    dict(boundary_tolerance=boundary_tolerance, final_orientation_tolerance=final_orientation_tolerance,
-                        complementarity_tolerance=complementarity_tolerance), slack_limit, mid_com_height)
+                        complementarity_tolerance=complementarity_tolerance,
+                        planar_tolerance=planar_tolerance),
+                   slack_limit, mid_com_height)
     throttle = _vector(throttle_range, 2, "throttle_range")
     if not throttle[0] <= throttle[1]:
         raise ValueError(f"throttle_range must be (lower, upper) with lower ≤ upper, got {throttle.tolist()}")
@@ -191,6 +200,7 @@ def build_task(
         max_dt=jnp.asarray(float(max_dt)),
         gravity=jnp.asarray(_vector(gravity, 3, "gravity")),
         complementarity_tolerance=jnp.asarray(float(complementarity_tolerance)),
+        planar_tolerance=jnp.asarray(float(planar_tolerance)),
         slack_limit=jnp.asarray(float(slack_limit)),
     )
     task = Task(
@@ -223,20 +233,31 @@ def with_slack_penalty(task, penalty):
     return dataclasses.replace(task, weights=weights)
 
 
-def exact_complementarity(task, tolerance=1e-6):
+def exact_complementarity(task, tolerance=1e-6, planar_tolerance=PLANAR_TOLERANCE):
     """``task`` with Scholtes' relaxation of the contact complementarity in place of the published
-    one: f_z c_z ≤ σ and |f_z Δc| ≤ σ (eq. 20, 21) with σ = tolerance [N m] and the slacks ε_n,
-    ε_t fixed at 0, so that a corner c_z above the ground carries at most σ / c_z [N].
+    one: f_z c_z ≤ σ_n and |f_z Δc| ≤ σ_t (eq. 20, 21) with σ_n = tolerance, σ_t =
+    planar_tolerance [N m] (None: σ_n) and the slacks ε_n, ε_t fixed at 0, so that a corner c_z
+    above the ground carries at most σ_n / c_z [N] and a loaded one slips at most σ_t / f_z [m] per
+    interval (1e-4 N m: 1 µm under 100 N).
+
+    σ_t is apart from σ_n because the planar rows of a foot's four corners bound its three planar
+    degrees of freedom eight times over: the tighter σ_t, the nearer their gradients come to
+    dependence at a stance, and the interior-point iterates then approach the answer like 1/k
+    with multipliers growing without bound (docs/design-decisions.md, "The planar rows' own
+    tolerance").
 
     Its NLP has the published one's structure (σ and the slacks' bound are data), so one compiled
-    solve serves both. From the published guess it is harder to solve; warm-started from the
-    published task's answer, ``solve_task(exact_complementarity(task), warm_start=relaxed)``, it
-    moves an optimum that buys force on a corner in the air to a physical one nearby.
+    solve serves both. From the published guess solve it with the relaxation homotopy
+    (``Options(relaxation=1e-3)``); warm-started from the published task's answer,
+    ``solve_task(exact_complementarity(task), warm_start=relaxed)``, it moves an optimum that buys
+    force on a corner in the air to a physical one nearby.
     """
-    if not (np.ndim(tolerance) == 0 and np.isfinite(tolerance) and tolerance >= 0):
-        raise ValueError(f"tolerance must be a finite non-negative number [N m], got {tolerance!r}")
+    planar_tolerance = tolerance if planar_tolerance is None else planar_tolerance
+    for label, value in (("tolerance", tolerance), ("planar_tolerance", planar_tolerance)):
+        if not (np.ndim(value) == 0 and np.isfinite(value) and value >= 0):
+            raise ValueError(f"{label} must be a finite non-negative number [N m], got {value!r}")
     params = dataclasses.replace(task.params, complementarity_tolerance=jnp.asarray(float(tolerance)),
-                                 slack_limit=jnp.asarray(0.0))
+                                 planar_tolerance=jnp.asarray(float(planar_tolerance)), slack_limit=jnp.asarray(0.0))
     return dataclasses.replace(task, params=params)
 
 

@@ -173,24 +173,37 @@ def test_knots_below_two_is_a_usage_error(capsys):
 def test_relaxation_sets_the_solver_option_and_a_negative_one_is_a_usage_error(capsys):
     from jaxmm import cli, programs
 
-    args = argparse.Namespace(max_iterations=None, ipopt_slacks=False, relaxation=1e-3)
-    assert cli.solver_options(args) == dataclasses.replace(programs.DEFAULT_OPTIONS, relaxation=1e-3)
+    args = argparse.Namespace(max_iterations=None, ipopt_slacks=False, relaxation=2e-3)
+    assert cli.solver_options(args) == dataclasses.replace(programs.DEFAULT_OPTIONS, relaxation=2e-3)
+    # --exact solves through the homotopy unless --relaxation says otherwise (0: off)
+    exact = argparse.Namespace(**{**vars(args), "relaxation": None, "exact": 1e-6})
+    assert cli.solver_options(exact).relaxation == cli.EXACT_RELAXATION > 0
+    assert cli.solver_options(argparse.Namespace(**{**vars(exact), "relaxation": 0.0})).relaxation == 0.0
+    assert cli.solver_options(argparse.Namespace(**{**vars(exact), "exact": None})) == programs.DEFAULT_OPTIONS
     with pytest.raises(SystemExit) as exit:
         main(["solve", "take-off", "--relaxation", "-1"])
     assert exit.value.code == 2 and "--relaxation must be a finite number ≥ 0" in capsys.readouterr().err
 
 
 def test_exact_solves_the_exact_task_and_a_negative_sigma_is_a_usage_error(capsys):
-    from jaxmm import cli
+    from jaxmm import cli, tasks
 
-    args = argparse.Namespace(scenario="take-off", knots=14, target=None, urdf=None, torque_limits=False, exact=1e-6)
+    args = argparse.Namespace(scenario="take-off", knots=14, target=None, urdf=None, torque_limits=False, exact=1e-6,
+                              planar_tolerance=None)
     exact = cli.scenario_task(args)
     assert float(exact.params.complementarity_tolerance) == 1e-6 and float(exact.params.slack_limit) == 0.0
+    assert float(exact.params.planar_tolerance) == tasks.PLANAR_TOLERANCE
+    planar = cli.scenario_task(argparse.Namespace(**{**vars(args), "planar_tolerance": 3e-6}))
+    assert float(planar.params.planar_tolerance) == 3e-6 and float(planar.params.complementarity_tolerance) == 1e-6
     published = cli.scenario_task(argparse.Namespace(**{**vars(args), "exact": None}))
     assert float(published.params.complementarity_tolerance) == 0.0 and float(published.params.slack_limit) == float("inf")
-    with pytest.raises(SystemExit) as exit:
-        main(["solve", "take-off", "--exact", "-1"])
-    assert exit.value.code == 2 and "--exact must be a finite number ≥ 0" in capsys.readouterr().err
+    assert float(published.params.planar_tolerance) == 0.0
+    for argv, message in ((["--exact", "-1"], "--exact must be a finite number ≥ 0"),
+                          (["--exact", "--planar-tolerance", "inf"], "--planar-tolerance must be a finite number ≥ 0"),
+                          (["--planar-tolerance", "1e-4"], "--planar-tolerance applies to the exact task")):
+        with pytest.raises(SystemExit) as exit:
+            main(["solve", "take-off", *argv])
+        assert exit.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_an_unconverged_solve_is_written_and_reported_with_exit_1(solved_take_off, tmp_path, capsys, monkeypatch):

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxmm import io
+from jaxmm import io, tasks
 
 
 @pytest.fixture(scope="module")
@@ -88,6 +88,23 @@ def test_a_file_before_version_5_solved_the_published_complementarity(saved, tmp
     loaded, _ = io.load(_rewrite(path, tmp_path / "version_4.npz", as_version_4))
     assert float(loaded.params.complementarity_tolerance) == 0.0 and float(loaded.params.slack_limit) == np.inf
     _leaves_equal(loaded.params, task.params)
+
+
+def test_a_file_before_version_7_bounds_the_planar_rows_by_its_normal_sigma(saved, tmp_path):
+    """Files written while one σ bounded both complementarity rows (eq. 20, 21) load with the
+    planar rows' σ_t equal to that σ, which is what they solved."""
+    path, task, result = saved
+    exact = tasks.exact_complementarity(task, 2e-6, None)
+    io.save(tmp_path / "exact.npz", exact, result)
+
+    def as_version_6(arrays):
+        content = json.loads(str(arrays["__header__"]))
+        del arrays[content["task"]["params"]["fields"].pop("planar_tolerance")["array"]]
+        arrays["__header__"] = np.array(json.dumps({**content, "version": 6}))
+
+    loaded, _ = io.load(_rewrite(tmp_path / "exact.npz", tmp_path / "version_6.npz", as_version_6))
+    assert float(loaded.params.planar_tolerance) == 2e-6
+    _leaves_equal(loaded.params, exact.params)
 
 
 @pytest.mark.parametrize("penalty", ["linear", "squared"])

@@ -247,6 +247,7 @@ def test_every_unbounded_variable_enters_the_cost_or_a_constraint(name):
     (dict(min_dt=-0.1), "time-step bounds"),
     (dict(jet_coefficients=np.zeros((4, 9))), r"jet_coefficients must have shape \(4, 10\)"),
     (dict(complementarity_tolerance=-1e-6), "complementarity_tolerance must be a finite non-negative number"),
+    (dict(planar_tolerance=float("nan")), "planar_tolerance must be a finite non-negative number"),
     (dict(slack_limit=-1.0), "slack_limit must be a non-negative number"),
 ])
 def test_bad_task_input(kwargs, message):
@@ -256,17 +257,18 @@ def test_bad_task_input(kwargs, message):
 
 
 def test_exact_complementarity_bounds_the_products_by_sigma_and_fixes_the_slacks():
-    """Scholtes' relaxation (``tasks.exact_complementarity``): the normal rows f_z c_z − ε_n ≤ σ,
-    the planar rows f_z Δc ∓ ε_t within ±σ, the slacks boxed to [0, 0]; everything else as
-    published, and the leaf types unchanged (the compiled solve is shared)."""
+    """Scholtes' relaxation (``tasks.exact_complementarity``): the normal rows f_z c_z − ε_n ≤ σ_n,
+    the planar rows f_z Δc ∓ ε_t within ±σ_t, the slacks boxed to [0, 0]; everything else as
+    published, and the leaf types unchanged (the compiled solve is shared). σ_t defaults to
+    ``PLANAR_TOLERANCE``, and None gives the planar rows σ_n."""
     task = scenario("take_off", knots=6)
-    exact = tasks.exact_complementarity(task, 2e-6)
+    exact = tasks.exact_complementarity(task, 2e-6, 3e-5)
     nc = len(task.robot.contact_frames)
     published, bounds = constraints.inequality_bounds(task), constraints.inequality_bounds(exact)
     np.testing.assert_array_equal(bounds["normal_complementarity"][1], np.full(nc, 2e-6))
     np.testing.assert_array_equal(published["normal_complementarity"][1], np.zeros(nc))
-    np.testing.assert_array_equal(bounds["planar_complementarity"][0][2 * nc:], np.full(2 * nc, -2e-6))
-    np.testing.assert_array_equal(bounds["planar_complementarity"][1][:2 * nc], np.full(2 * nc, 2e-6))
+    np.testing.assert_array_equal(bounds["planar_complementarity"][0], np.r_[np.full(2 * nc, -np.inf), np.full(2 * nc, -3e-5)])
+    np.testing.assert_array_equal(bounds["planar_complementarity"][1], np.r_[np.full(2 * nc, 3e-5), np.full(2 * nc, np.inf)])
     for name in ("friction_cone", "corner_com", "jet_com"):
         for ours, theirs in zip(bounds[name], published[name]):
             np.testing.assert_array_equal(ours, theirs)
@@ -276,8 +278,11 @@ def test_exact_complementarity_bounds_the_products_by_sigma_and_fixes_the_slacks
         np.testing.assert_array_equal(getattr(upper.knots, name), 0.0)
         assert np.all(np.isinf(getattr(published_upper.knots, name)))
     assert jax.tree.map(jax.typeof, exact) == jax.tree.map(jax.typeof, task)
-    with pytest.raises(ValueError, match="tolerance must be a finite non-negative number"):
-        tasks.exact_complementarity(task, -1.0)
+    assert float(tasks.exact_complementarity(task).params.planar_tolerance) == tasks.PLANAR_TOLERANCE
+    assert float(tasks.exact_complementarity(task, 2e-6, None).params.planar_tolerance) == 2e-6
+    for args, label in (((-1.0,), "tolerance"), ((1e-6, np.inf), "planar_tolerance")):
+        with pytest.raises(ValueError, match=f"^{label} must be a finite non-negative number"):
+            tasks.exact_complementarity(task, *args)
 
 
 def test_the_complementarity_rows_alone_are_marked_for_the_relaxation_homotopy():

@@ -498,15 +498,16 @@ class ReferenceNLP:
         nc, nj = self.layout.n_contacts, self.layout.n_jets
         P = self._numbers.params
         corner, jet = np.tile(P["corner_com_bound"], nc), np.full(3 * nj, float(P["jet_com_bound"]))
-        sigma = np.full(2 * nc, float(P["complementarity_tolerance"]))  # eq. (20, 21) relaxed by σ
+        sigma = np.full(nc, float(P["complementarity_tolerance"]))  # eq. (20) relaxed by σ_n
+        sigma_t = np.full(2 * nc, float(P["planar_tolerance"]))  # eq. (21) relaxed by σ_t
         return {
             "friction_cone": (np.full(4 * nc, -np.inf), np.zeros(4 * nc)),
-            "normal_complementarity": (np.full(nc, -np.inf), sigma[:nc]),
+            "normal_complementarity": (np.full(nc, -np.inf), sigma),
             "corner_com": (-corner, corner),
             "jet_com": (-jet, jet),
             "planar_complementarity": (
-                np.concatenate([np.full(2 * nc, -np.inf), -sigma]),
-                np.concatenate([sigma, np.full(2 * nc, np.inf)]),
+                np.concatenate([np.full(2 * nc, -np.inf), -sigma_t]),
+                np.concatenate([sigma_t, np.full(2 * nc, np.inf)]),
             ),
             JOINT_TORQUE: (-self._effort_limits, self._effort_limits),
         }

@@ -165,18 +165,19 @@ def inequality_bounds(task):
     nc, nj = len(task.robot.contact_frames), len(task.robot.jet_frames)
     corner = jnp.tile(task.params.corner_com_bound, nc)
     jet = jnp.full(3 * nj, 1.0) * task.params.jet_com_bound
-    sigma = jnp.full(2 * nc, 1.0) * task.params.complementarity_tolerance  # σ of eq. (20, 21)
+    sigma = jnp.full(nc, 1.0) * task.params.complementarity_tolerance  # σ_n of eq. (20)
+    sigma_t = jnp.full(2 * nc, 1.0) * task.params.planar_tolerance  # σ_t of eq. (21)
     inf = jnp.inf
     effort = task.robot.model.effort_limits
     return dict(
         joint_torque=(-effort, effort),
         friction_cone=(jnp.full(4 * nc, -inf), jnp.zeros(4 * nc)),
-        normal_complementarity=(jnp.full(nc, -inf), sigma[:nc]),
+        normal_complementarity=(jnp.full(nc, -inf), sigma),
         corner_com=(-corner, corner),
         jet_com=(-jet, jet),
         planar_complementarity=(
-            jnp.concatenate([jnp.full(2 * nc, -inf), -sigma]),
-            jnp.concatenate([sigma, jnp.full(2 * nc, inf)]),
+            jnp.concatenate([jnp.full(2 * nc, -inf), -sigma_t]),
+            jnp.concatenate([sigma_t, jnp.full(2 * nc, inf)]),
         ),
     )
 

@@ -92,10 +92,12 @@ class TaskParams:
     joint_limits: (n, 2) [rad]; joint_velocity_limit [rad/s]; base_linear_velocity_limit [m/s];
     base_angular_velocity_limit [rad/s]; com_xy_limit [m]; boundary_tolerance: initial
     equilibrium/orientation tolerance; final_orientation_tolerance; min_dt, max_dt [s];
-    gravity: (3,) [m/s²]; complementarity_tolerance: () σ ≥ 0 [N m] and slack_limit: () ε_max
-    ≥ 0 of the complementarity rows f_z c_z − ε_n ≤ σ, |f_z Δc − ε_t| ≤ σ with 0 ≤ ε ≤ ε_max
-    (eq. 20, 21): the published relaxation is σ = 0, ε_max = ∞ (slacks paid for in the cost);
-    σ > 0, ε_max = 0 is Scholtes' relaxation without slacks (``tasks.exact_complementarity``).
+    gravity: (3,) [m/s²]; complementarity_tolerance: () σ_n ≥ 0 [N m], planar_tolerance: ()
+    σ_t ≥ 0 [N m] and slack_limit: () ε_max ≥ 0 of the complementarity rows f_z c_z − ε_n ≤ σ_n,
+    |f_z Δc − ε_t| ≤ σ_t with 0 ≤ ε ≤ ε_max (eq. 20, 21): the published relaxation is σ = 0,
+    ε_max = ∞ (slacks paid for in the cost); σ > 0, ε_max = 0 is Scholtes' relaxation without
+    slacks (``tasks.exact_complementarity``). σ_n bounds the force of a corner above the ground
+    (σ_n / c_z [N]), σ_t its slip per interval under load (σ_t / f_z [m]).
     """
 
     initial_com: jax.Array
@@ -119,6 +121,7 @@ class TaskParams:
     max_dt: jax.Array
     gravity: jax.Array
     complementarity_tolerance: jax.Array
+    planar_tolerance: jax.Array
     slack_limit: jax.Array
 
 
