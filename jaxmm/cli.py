@@ -354,8 +354,8 @@ def _scenario_arguments(parser):
                              "published relaxation (tasks.exact_complementarity), solved through the homotopy "
                              "(--relaxation 1e-3 unless given)")
     parser.add_argument("--planar-tolerance", type=float, metavar="SIGMA_T",
-                        help="with --exact: the planar complementarity within SIGMA_T [N m, default 1e-4: a slip of "
-                             "at most 1 µm per interval under 100 N]")
+                        help="with --exact: the planar complementarity within SIGMA_T [N m, default 1e-3: a slip of "
+                             "at most 10 µm per interval under 100 N]")
     parser.add_argument("--time-budget", type=float, metavar="S",
                         help="stop iterating after S seconds and keep the last iterate (default: no limit)")
     cache = parser.add_mutually_exclusive_group()
