@@ -59,7 +59,8 @@ itself instead of at the pushed guess (``Options.slack_start``).
 --relaxation K solves with the relaxation homotopy (``Options(relaxation=K)``: Scholtes' σ driven
 by μ; IPOPT unchanged). --exact [SIGMA] solves, on both sides, ``tasks.exact_complementarity(task,
 SIGMA, SIGMA_T)`` (f_z c_z ≤ SIGMA [N m, default 1e-6], |f_z Δc| ≤ SIGMA_T [N m,
---planar-tolerance, default ``tasks.PLANAR_TOLERANCE``], no slack) instead of the published NLP.
+--planar-tolerance, default ``tasks.PLANAR_TOLERANCE``], no slack) instead of the published NLP,
+ours through the homotopy (``programs.EXACT_RELAXATION``) unless --relaxation is given.
 
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.
@@ -328,13 +329,16 @@ def main():
     parser.add_argument("--save", default=None, metavar="DIR",
                         help="write each of our solutions to DIR/<scenario>_N<N>.npz (jaxmm.io.save; with its "
                              "per-iteration history)")
-    parser.add_argument("--relaxation", type=float, default=0.0, metavar="K",
-                        help="our solver with the relaxation homotopy, Options(relaxation=K) (default 0: off)")
+    parser.add_argument("--relaxation", type=float, default=None, metavar="K",
+                        help="our solver with the relaxation homotopy, Options(relaxation=K) (default: off; "
+                             "programs.EXACT_RELAXATION with --exact)")
     parser.add_argument("--exact", type=float, nargs="?", const=1e-6, default=None, metavar="SIGMA",
                         help="both sides on tasks.exact_complementarity(task, SIGMA) (default SIGMA 1e-6 N m)")
     parser.add_argument("--planar-tolerance", type=float, default=tasks.PLANAR_TOLERANCE, metavar="SIGMA_T",
                         help="with --exact: the planar rows' σ_t [N m] (default tasks.PLANAR_TOLERANCE)")
     args = parser.parse_args()
+    if args.relaxation is None:
+        args.relaxation = 0.0 if args.exact is None else programs.EXACT_RELAXATION
     if not (args.relaxation >= 0 and np.isfinite(args.relaxation)):
         parser.error(f"--relaxation must be a finite number ≥ 0, got {args.relaxation}")
     for flag, value in (("--exact", args.exact), ("--planar-tolerance", args.planar_tolerance)):

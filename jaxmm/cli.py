@@ -39,9 +39,6 @@ import threading
 import time
 
 ERRORS = (ValueError, KeyError, OSError, TypeError, ImportError)
-# κ_σ of the relaxation homotopy for --exact: the exact task from the published guess is solved
-# through Scholtes' relaxation driven by μ (docs/design-decisions.md, "Scholtes' relaxation driven by μ").
-EXACT_RELAXATION = 1e-3
 
 
 class Progress:
@@ -144,7 +141,7 @@ def scenario_task(args):
 
 def solver_options(args):
     """The solver options of ``args`` (--max-iterations, --ipopt-slacks, --relaxation); with
-    --exact and no --relaxation, the homotopy's κ_σ = ``EXACT_RELAXATION``."""
+    --exact and no --relaxation, the homotopy's κ_σ = ``programs.EXACT_RELAXATION``."""
     from jaxmm import programs
 
     options = programs.DEFAULT_OPTIONS
@@ -154,7 +151,7 @@ def solver_options(args):
         options = dataclasses.replace(options, ipopt_slacks=True)
     relaxation = getattr(args, "relaxation", None)
     if relaxation is None and getattr(args, "exact", None) is not None:
-        relaxation = EXACT_RELAXATION
+        relaxation = programs.EXACT_RELAXATION
     if relaxation is not None:
         options = dataclasses.replace(options, relaxation=relaxation)
     return options

@@ -46,6 +46,10 @@ class TaskSolution:
 
 
 DEFAULT_OPTIONS = ip.Options()
+# κ_σ of the relaxation homotopy with which the exact task (``tasks.exact_complementarity``) is
+# solved from a guess: Scholtes' relaxation driven by μ (docs/design-decisions.md, "Scholtes'
+# relaxation driven by μ"); the command line's and the benchmarks' --exact take it.
+EXACT_RELAXATION = 1e-3
 
 
 # A warm start begins near the bounds the previous solution touches, with a small barrier.

@@ -177,7 +177,7 @@ def test_relaxation_sets_the_solver_option_and_a_negative_one_is_a_usage_error(c
     assert cli.solver_options(args) == dataclasses.replace(programs.DEFAULT_OPTIONS, relaxation=2e-3)
     # --exact solves through the homotopy unless --relaxation says otherwise (0: off)
     exact = argparse.Namespace(**{**vars(args), "relaxation": None, "exact": 1e-6})
-    assert cli.solver_options(exact).relaxation == cli.EXACT_RELAXATION > 0
+    assert cli.solver_options(exact).relaxation == programs.EXACT_RELAXATION > 0
     assert cli.solver_options(argparse.Namespace(**{**vars(exact), "relaxation": 0.0})).relaxation == 0.0
     assert cli.solver_options(argparse.Namespace(**{**vars(exact), "exact": None})) == programs.DEFAULT_OPTIONS
     with pytest.raises(SystemExit) as exit:
