@@ -136,7 +136,7 @@ def scenario_task(args):
     exact, planar = getattr(args, "exact", None), getattr(args, "planar_tolerance", None)
     if exact is None:
         return task
-    return tasks.exact_complementarity(task, exact, tasks.PLANAR_TOLERANCE if planar is None else planar)
+    return tasks.exact_complementarity(task, exact) if planar is None else tasks.exact_complementarity(task, exact, planar)
 
 
 def solver_options(args):
