@@ -9,7 +9,7 @@ import jaxmm  # noqa: F401  (float64)
 from jaxmm.solver import linalg
 
 
-def _random_system(K, n, m, seed):
+def random_system(K, n, m, seed):
     """A random SPD bordered block-tridiagonal matrix, as blocks and as a dense matrix."""
     rng = np.random.default_rng(seed)
     N = K * n + m
@@ -34,7 +34,7 @@ def _random_system(K, n, m, seed):
 
 @pytest.mark.parametrize("K, n, m", [(1, 3, 1), (2, 3, 1), (3, 2, 1), (7, 5, 2), (8, 4, 2), (20, 12, 1), (5, 4, 0)])
 def test_solve_matches_dense(K, n, m):
-    A, D, L, B, C = _random_system(K, n, m, seed=K * 100 + n)
+    A, D, L, B, C = random_system(K, n, m, seed=K * 100 + n)
     rng = np.random.default_rng(0)
     r, s = rng.normal(size=(K, n)), rng.normal(size=m)
     chol = jax.jit(linalg.factor)(D, L, B.reshape(K, n, m), C.reshape(m, m))
@@ -49,7 +49,7 @@ def test_not_positive_definite_is_reported_where_either_chain_meets_it(indefinit
     """The factorisation runs from both ends (blocks 0, 1, … and 8, 7, … of 9, meeting at block
     4) and stops at the first indefinite block: at block 1 or at block 7, after blocks 0 and 8
     and the other chain's second block; blocks 2, 3, 5 and 6 are never factored."""
-    A, D, L, B, C = _random_system(9, 3, 1, seed=1)
+    A, D, L, B, C = random_system(9, 3, 1, seed=1)
     D = D.copy()
     D[indefinite] -= 1e3 * np.eye(3)
     chol = linalg.factor(D, L, B, C)
@@ -59,7 +59,7 @@ def test_not_positive_definite_is_reported_where_either_chain_meets_it(indefinit
 
 
 def test_a_failing_last_block_middle_block_or_schur_complement_is_reported():
-    A, D, L, B, C = _random_system(4, 3, 1, seed=2)
+    A, D, L, B, C = random_system(4, 3, 1, seed=2)
     last = D.copy()
     last[3] -= 1e3 * np.eye(3)
     chol = linalg.factor(last, L, B, C)
@@ -74,7 +74,7 @@ def test_a_failing_last_block_middle_block_or_schur_complement_is_reported():
 
 
 def test_vmap_over_systems():
-    systems = [_random_system(6, 4, 1, seed=s) for s in range(3)]
+    systems = [random_system(6, 4, 1, seed=s) for s in range(3)]
     D, L, B, C = (jnp.stack([sys[i] for sys in systems]) for i in range(1, 5))
     r = jnp.ones((3, 6, 4))
     s = jnp.ones((3, 1))
@@ -85,7 +85,7 @@ def test_vmap_over_systems():
 
 
 def test_matvec_matches_dense():
-    A, D, L, B, C = _random_system(6, 4, 2, seed=3)
+    A, D, L, B, C = random_system(6, 4, 2, seed=3)
     rng = np.random.default_rng(1)
     x, y = rng.normal(size=(6, 4)), rng.normal(size=2)
     top, bottom = linalg.matvec(D, L, B, C, x, y)
@@ -99,7 +99,7 @@ def test_coupling_in_some_columns(K, n, m, coupled):
     """Coupling blocks non-zero only in the declared columns: the same solution as a dense solve,
     and a wrong declaration (a non-zero column left out) is not silently the same; the columns
     anywhere (the blocks reordered) or already last (nothing reordered)."""
-    A, D, L, B, C = _random_system(K, n, m, seed=K + n)
+    A, D, L, B, C = random_system(K, n, m, seed=K + n)
     outside = np.setdiff1d(np.arange(n), coupled)
     L = L.copy()
     L[:, :, outside] = 0
@@ -122,7 +122,7 @@ def test_coupling_in_some_columns(K, n, m, coupled):
 
 
 def test_coupled_columns_out_of_range_are_refused():
-    A, D, L, B, C = _random_system(3, 4, 1, seed=5)
+    A, D, L, B, C = random_system(3, 4, 1, seed=5)
     with pytest.raises(ValueError, match="coupled columns"):
         linalg.factor(D, L, B, C, coupled=(1, 4))
 
@@ -133,7 +133,7 @@ def test_diagonal_shifts_added_as_factored(coupled):
     with or without the coupled-columns reordering, and a shift that makes a block indefinite is
     reported as such."""
     K, n, m = 6, 6, 2
-    _, D, L, B, C = _random_system(K, n, m, seed=11)
+    _, D, L, B, C = random_system(K, n, m, seed=11)
     if coupled is not None:
         outside = np.setdiff1d(np.arange(n), coupled)
         L = L.copy()
@@ -154,7 +154,7 @@ def test_diagonal_gives_the_lower_triangular_factors():
     blocks, knot 0 and knot K − 1, are factored before any update, so their factors are those of
     D_0 and D_{K−1} themselves."""
     K, n, m = 5, 4, 1
-    _, D, L, B, C = _random_system(K, n, m, seed=21)
+    _, D, L, B, C = random_system(K, n, m, seed=21)
     factors = np.asarray(linalg.factor(D, L, B, C).diagonal)
     assert np.all(np.triu(factors, 1) == 0.0)
     for k in (0, K - 1):
