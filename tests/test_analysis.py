@@ -83,7 +83,7 @@ def test_complementarity_measures_the_products_of_eq_20_and_21():
     """Zero for a stance (its corners are where the kinematics put them, within 1e-6 m of the
     ground); a lifted corner's f_z c_z, a pushing corner's sliding |f_z Δc_xy| and the largest
     slack, each where it was put."""
-    _, trajectory = _standing_still()
+    task, trajectory = _standing_still()
     knots = trajectory.knots
     still = analysis.complementarity(trajectory)
     assert still["normal"] < 1e-4 and still["planar"] == 0.0 and still["slack"] == 0.0
@@ -95,6 +95,13 @@ def test_complementarity_measures_the_products_of_eq_20_and_21():
     sliding = max(float(knots.contact_forces[1, 1, 2]), float(knots.contact_forces[2, 1, 2])) * 0.002
     assert measure["normal"] == pytest.approx(0.05 * force, abs=still["normal"])
     assert measure["planar"] == pytest.approx(sliding, rel=1e-9) and measure["slack"] == 3e-3
+    # The 2 mm move is a slip under the stance's load, not under a load above every force.
+    assert still["slip"] == 0.0 and measure["slip"] == pytest.approx(0.002, rel=1e-9)
+    above = 1.0 + float(knots.contact_forces[..., 2].max())
+    assert analysis.complementarity(Trajectory(moved, trajectory.total_time), load=above)["slip"] == 0.0
+    report = analysis.validate(task, Trajectory(moved, trajectory.total_time), slip_limit=1e-3)
+    slip = next(c for c in report.checks if c.name == "slip of loaded corners")
+    assert slip.value == pytest.approx(0.002, rel=1e-9) and not slip.passed and not slip.enforced
 
 
 def test_unbalanced_forces_fail_the_resimulation():

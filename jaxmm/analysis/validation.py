@@ -87,18 +87,22 @@ def airborne_corners(trajectory, contact_height=0.01):
     return np.asarray(trajectory.knots.contact_points[..., 2]) > contact_height
 
 
-def complementarity(trajectory):
+def complementarity(trajectory, load=10.0):
     """How far a trajectory is from exact contact complementarity (eq. 20, 21 with ε = 0):
     {"normal": the largest f_z c_z [N m], "planar": the largest |f_z[k] (c_xy[k+1] − c_xy[k])|
-    [N m], "slack": the largest slack ε_n or ε_t [N m]}. All three are 0 for a trajectory whose
-    corners push only on the ground and never slide while they push."""
+    [N m], "slack": the largest slack ε_n or ε_t [N m], "slip": the largest ‖c_xy[k+1] −
+    c_xy[k]‖ of a corner carrying f_z[k] ≥ ``load`` [N] [m]}. All four are 0 for a trajectory
+    whose corners push only on the ground and never slide while they push; eq. 21 within σ_t
+    bounds the slip by about σ_t / load."""
     knots = trajectory.knots
     force = np.asarray(knots.contact_forces[..., 2])
     points = np.asarray(knots.contact_points)
-    sliding = np.abs(force[:-1, :, None] * (points[1:, :, :2] - points[:-1, :, :2]))
+    moves = points[1:, :, :2] - points[:-1, :, :2]
+    sliding = np.abs(force[:-1, :, None] * moves)
+    slip = np.where(force[:-1] >= load, np.linalg.norm(moves, axis=-1), 0.0)
     slack = np.concatenate([np.ravel(knots.normal_slack), np.ravel(knots.tangential_slack)])
     return dict(normal=float(np.max(force * points[..., 2], initial=0.0)), planar=float(np.max(sliding, initial=0.0)),
-                slack=float(np.max(slack, initial=0.0)))
+                slack=float(np.max(slack, initial=0.0)), slip=float(np.max(slip, initial=0.0)))
 
 
 def flight_knots(airborne):
@@ -153,7 +157,7 @@ def resimulate_com(task, trajectory):
 
 
 def validate(task, trajectory, *, tolerance=1e-4, contact_height=0.01, flight_force=1.0, resimulation_tolerance=0.01,
-             effort_limits=None):
+             effort_limits=None, slip_load=10.0, slip_limit=1e-3):
     """Check a trajectory against the task's physics; returns a ``ValidationReport``.
 
     tolerance: on every constraint family, box, target and range (physical units, as IPOPT's
@@ -163,7 +167,9 @@ def validate(task, trajectory, *, tolerance=1e-4, contact_height=0.01, flight_fo
     torque at knots 1..N (those whose accelerations the transcription defines) within its URDF
     effort limit, |τ| ≤ τ_max (1 + tolerance); None: where the task bounds them
     (``joint_torque_limits``). Otherwise the check is reported without deciding ``ok``, as the
-    paper's NLP does not bound the torques.
+    paper's NLP does not bound the torques. slip_load [N], slip_limit [m]: the largest slip
+    per interval of a corner under at least slip_load (``complementarity``), reported against
+    slip_limit without deciding ``ok``: the NLP bounds slip only through eq. 21's products.
     """
     checks = []
     values = jax.jit(constraints.evaluate)(task, trajectory)
@@ -194,6 +200,8 @@ def validate(task, trajectory, *, tolerance=1e-4, contact_height=0.01, flight_fo
     force_in_air = float(np.where(airborne, np.abs(vertical), 0.0).max(initial=0.0))
     checks.append(Check("no force on corners off the ground", force_in_air, flight_force,
                         f"corners above {contact_height} m; max slack ε_n {float(np.max(knots.normal_slack, initial=0.0)):.3g}"))
+    checks.append(Check("slip of loaded corners", complementarity(trajectory, slip_load)["slip"], slip_limit,
+                        f"metres per interval, corners under ≥ {slip_load:g} N", enforced=False))
     if layout.n_jets:
         thrust = np.asarray(knots.thrust)
         throttle = np.asarray(knots.throttle)
