@@ -104,6 +104,13 @@ def test_complementarity_measures_the_products_of_eq_20_and_21():
     assert slip.value == pytest.approx(0.002, rel=1e-9) and not slip.passed and not slip.enforced
 
 
+@pytest.mark.parametrize("load", [-1.0, float("nan"), float("inf"), "10"])
+def test_complementarity_refuses_a_load_that_is_not_a_force(load):
+    _, trajectory = _standing_still()
+    with pytest.raises(ValueError, match="load"):
+        analysis.complementarity(trajectory, load=load)
+
+
 def test_unbalanced_forces_fail_the_resimulation():
     task, trajectory = _standing_still()
     weaker = trajectory.knots.contact_forces * 0.9

@@ -93,7 +93,9 @@ def complementarity(trajectory, load=10.0):
     [N m], "slack": the largest slack ε_n or ε_t [N m], "slip": the largest ‖c_xy[k+1] −
     c_xy[k]‖ of a corner carrying f_z[k] ≥ ``load`` [N] [m]}. All four are 0 for a trajectory
     whose corners push only on the ground and never slide while they push; eq. 21 within σ_t
-    bounds the slip by about σ_t / load."""
+    bounds the slip by about σ_t / load. A ValueError for a load that is not a finite number ≥ 0."""
+    if not (isinstance(load, (int, float, np.floating, np.integer)) and np.isfinite(load) and load >= 0):
+        raise ValueError(f"complementarity's load must be a finite number of newtons ≥ 0, got {load!r}")
     knots = trajectory.knots
     force = np.asarray(knots.contact_forces[..., 2])
     points = np.asarray(knots.contact_points)
