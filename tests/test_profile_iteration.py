@@ -63,3 +63,14 @@ def test_every_instruction_has_its_shape_and_opcode():
     assert signatures and set(signatures) <= defined
     assert all(what.split(" ")[-1].replace("-", "_").isidentifier() for what in signatures.values())
     assert any(what.startswith("f64[64,3,3]") for what in signatures.values())
+
+
+def test_an_unknown_option_is_refused_before_compiling():
+    """``--option`` reads solver options as ``tools/rounding.py`` does; a name that is not one
+    stops the script with a usage error naming the known ones, before any compilation."""
+    import subprocess
+
+    run = subprocess.run([sys.executable, str(ROOT / "tools" / "profile_iteration.py"), "--option", "no_such=1"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2
+    assert "no_such" in run.stderr and "regularisation_decrease" in run.stderr and "compiling" not in run.stderr

@@ -21,8 +21,11 @@ stack tables of the compiled program's text (``FileNames``, ``FunctionNames``,
 ``FileLocations``, ``StackFrames``, ``stack_frame_id=``), as jaxlib 0.10 prints them; a jaxlib
 that prints none makes the script stop with a message saying so.
 
+``--option name=value`` changes a solver option (as ``tools/rounding.py`` reads it), so that a
+variant's iteration is profiled beside the default's.
+
 Usage: python tools/profile_iteration.py [--scenario take_off] [--knots N] [--skip 20]
-       [--iterations 10] [--top 40] [--unattributed 15] [--cache DIR]
+       [--iterations 10] [--top 40] [--unattributed 15] [--cache DIR] [--option name=value ...]
 """
 
 import os
@@ -32,8 +35,10 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"  # before numpy is imported
 import pathlib  # noqa: E402
 import sys  # noqa: E402
 
-# benchmarks/machine.py: the machine, versions and tables that the benchmarks print too
+# benchmarks/machine.py: the machine, versions and tables that the benchmarks print too; and
+# tools/rounding.py's reading of --option
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 
 import argparse  # noqa: E402
 import collections  # noqa: E402
@@ -45,7 +50,8 @@ import jax  # noqa: E402
 
 import jaxmm  # noqa: E402,F401  (enables float64)
 from machine import format_time, log, machine_lines, render, timed  # noqa: E402
-from jaxmm import compilation, programs, solve, tasks  # noqa: E402
+from rounding import solver_options  # noqa: E402
+from jaxmm import compilation, programs, tasks  # noqa: E402
 from jaxmm.solver import interior_point as ip  # noqa: E402
 
 # Events of the trace that are not operations of the program: the executor's and the thread
@@ -151,6 +157,8 @@ def main():
     parser.add_argument("--top", type=int, default=40, help="rows of the table by function")
     parser.add_argument("--cache", default=None, help="a persistent compilation cache directory")
     parser.add_argument("--unattributed", type=int, default=15, help="rows of the table of unattributed operations")
+    parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                        help="a solver option changed from the default (repeatable)")
     args = parser.parse_args()
     if args.skip < 0 or args.iterations < 1:
         parser.error("--skip must be ≥ 0 and --iterations ≥ 1")
@@ -160,7 +168,10 @@ def main():
     for line in machine_lines(("jax", "jaxlib")):
         print(line)
     task = tasks.scenario(args.scenario, knots=args.knots, keep_horizon=args.knots is not None)
-    options = dataclasses.replace(solve.DEFAULT_OPTIONS, max_iterations=args.skip + args.iterations)
+    try:
+        options = dataclasses.replace(solver_options(args.option), max_iterations=args.skip + args.iterations)
+    except ValueError as error:
+        parser.error(str(error))
     guess, options, multipliers, bound_multipliers = programs.prepare(task, None, options)
     state = programs.start(task, guess, options, multipliers, bound_multipliers)
     options = ip.iteration_options(options)
@@ -183,7 +194,8 @@ def main():
         sys.exit("no iteration ran in the profiled slice")
 
     per = lambda ns: format_time(ns / 1e9 / done)  # noqa: E731
-    print(f"\n{args.scenario}, N = {task.n_intervals}: iterations {args.skip + 1}–{args.skip + done} "
+    changed = f", {', '.join(args.option)}" if args.option else ""
+    print(f"\n{args.scenario}, N = {task.n_intervals}{changed}: iterations {args.skip + 1}–{args.skip + done} "
           f"(compile {compile_time:.1f} s)")
     print(f"per iteration: {format_time(plain / done)} plain; {per(span)} profiled, of which {per(inside)} "
           f"inside {sum(counts.values()) / done:.0f} operations and {per(span - inside)} between them")
