@@ -164,7 +164,9 @@ def _factor_tridiagonal(D, L, order, s, shift):
     # The backward chain first, then the forward one, each stopping at its first indefinite
     # block: an interior-point method's Newton matrices on a trajectory are indefinite mostly
     # in the last knots' blocks (take-off N = 70: 97 % of the failed attempts in knots 44–70), found
-    # here without the forward chain's work.
+    # here without the forward chain's work. Each chain in arrays of its own, updated in place,
+    # indexed: with both chains' blocks in one array XLA copied the whole array at every step (a
+    # factorisation 3.6× slower), and a scan's stacked outputs factor 1.2× and solve 3.4× slower.
     Lf, Lb = jnp.zeros((M, n, n), D.dtype), jnp.zeros((M, n, n), D.dtype)
     Wf, Wb = jnp.zeros((M, n, s), D.dtype), jnp.zeros((M, n, s), D.dtype)
     count, ok = jnp.asarray(0), jnp.asarray(True)
