@@ -160,3 +160,66 @@ def test_diagonal_gives_the_lower_triangular_factors():
     assert np.all(np.triu(factors, 1) == 0.0)
     for k in (0, K - 1):
         assert np.allclose(factors[k] @ factors[k].T, D[k], rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("coupled", [None, (4, 1, 5), (3, 4, 5)])
+@pytest.mark.parametrize("fixed_global", [False, True])
+def test_fixed_variables_are_held_out(coupled, fixed_global):
+    """factor(…, free=(fz, ft)) factors the matrix whose fixed variables' rows and columns are the
+    identity's (their shifts ignored): the solve returns the right-hand side there and, on the
+    others, the dense solve of the free variables' system with the fixed ones' columns moved to
+    the right-hand side as zeros."""
+    K, n, m = 7, 6, 2
+    A, D, L, B, C = random_system(K, n, m, seed=31)
+    if coupled is not None:
+        outside = np.setdiff1d(np.arange(n), coupled)
+        L = L.copy()
+        L[:, :, outside] = 0.0
+        for k in range(K - 1):
+            A[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n] = L[k]
+            A[k * n : (k + 1) * n, (k + 1) * n : (k + 2) * n] = L[k].T
+    rng = np.random.default_rng(4)
+    fz = (rng.uniform(size=(K, n)) > 0.3).astype(float)
+    fz[0, :] = 0.0  # a whole knot fixed, as boundary conditions fix one
+    ft = np.ones(m)
+    if fixed_global:
+        ft[1] = 0.0
+    shift, corner = rng.uniform(0.1, 2.0, size=(K, n)), rng.uniform(0.1, 2.0, size=m)
+    chol = linalg.factor(D, L, B, C, coupled=coupled, shift=shift, corner_shift=corner, free=(fz, ft))
+    r, s = rng.normal(size=(K, n)), rng.normal(size=m)
+    x, y = linalg.solve(chol, r, s)
+    free = np.concatenate([fz.reshape(-1), ft]) > 0
+    dense = A + np.diag(np.concatenate([shift.reshape(-1), corner]))
+    rhs = np.concatenate([r.reshape(-1), s])
+    expected = rhs.copy()
+    expected[free] = np.linalg.solve(dense[np.ix_(free, free)], rhs[free])
+    assert bool(chol.ok)
+    assert np.allclose(np.concatenate([np.asarray(x).reshape(-1), y]), expected, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("K", [7, 8])
+@pytest.mark.parametrize("coupled", [None, (4, 1, 5)])
+def test_storage_of_an_earlier_factor_is_reused_exactly(K, coupled):
+    """factor(…, into=earlier) in the storage of an earlier factor, one that failed part-way (NaN
+    in a chain) or one of another matrix: bit for bit the factor and the solution of a fresh
+    factorisation, with K odd and K even (the backward chain's spare slot)."""
+    n, m = 6, 1
+    _, D, L, B, C = random_system(K, n, m, seed=41)
+    _, D2, L2, B2, C2 = random_system(K, n, m, seed=42)
+    if coupled is not None:
+        outside = np.setdiff1d(np.arange(n), coupled)
+        L, L2 = L.copy(), L2.copy()
+        L[:, :, outside] = 0.0
+        L2[:, :, outside] = 0.0
+    failed_D = D2.copy()
+    failed_D[K // 2 + 1] -= 1e3 * np.eye(n)  # the backward chain's last block: its other blocks factored
+    failed = linalg.factor(failed_D, L2, B2, C2, coupled=coupled)
+    assert not bool(failed.ok) and not np.all(np.isfinite(np.asarray(failed.backward.blocks)))
+    fresh = linalg.factor(D, L, B, C, coupled=coupled)
+    r, s = np.random.default_rng(5).normal(size=(K, n)), np.ones(m)
+    for earlier in (failed, linalg.factor(D2, L2, B2, C2, coupled=coupled)):
+        reused = jax.jit(lambda *a: linalg.factor(*a, coupled=coupled, into=earlier))(D, L, B, C)
+        assert bool(reused.ok)
+        assert np.array_equal(np.asarray(reused.diagonal), np.asarray(fresh.diagonal))
+        for a, b in zip(linalg.solve(reused, r, s), linalg.solve(fresh, r, s)):
+            assert np.array_equal(np.asarray(a), np.asarray(b))

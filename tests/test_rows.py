@@ -57,6 +57,30 @@ def test_rows_apply_pull_and_gram_match_the_dense_jacobian(transition):
 
 
 @pytest.mark.parametrize("transition", [False, True])
+def test_scaled_rows_are_the_jacobian_scaled_row_by_row(transition):
+    """``rows.scaled`` keeps the factors beside the Jacobians: apply, pull and gram (dense and on
+    row supports) equal those of diag(s₂ s₁) J, the factors of two calls multiplied."""
+    K, n, ng, m = 5, 4, 2, 3
+    J, dense = random_rows(K, n, ng, m, transition, seed=11)
+    rng = np.random.default_rng(8)
+    R = K - 1 if transition else K
+    s1, s2 = rng.uniform(0.1, 3.0, size=(R, m)), rng.uniform(0.1, 3.0, size=(R, m))
+    scaled = rows.scaled(rows.scaled(J, s1), s2)
+    dense = np.diag((s1 * s2).reshape(-1)) @ dense
+    dz, dt = rng.normal(size=(K, n)), rng.normal(size=ng)
+    v, w = rng.normal(size=(R, m)), rng.uniform(0.0, 2.0, size=(R, m))
+    np.testing.assert_allclose(np.asarray(rows.apply(scaled, dz, dt)).reshape(-1),
+                               dense @ np.concatenate([dz.reshape(-1), dt]), atol=1e-12)
+    gz, gt = rows.pull(scaled, v, K)
+    np.testing.assert_allclose(np.concatenate([np.asarray(gz).reshape(-1), gt]), dense.T @ v.reshape(-1), atol=1e-12)
+    expected = dense.T @ np.diag(w.reshape(-1)) @ dense
+    np.testing.assert_allclose(dense_blocks(rows.gram(scaled, w, K), K, n), expected, atol=1e-12)
+    every = (RowSupport(0, m, tuple(range(n)), tuple(range(n)) if transition else ()),)
+    supported = rows.scaled(rows.scaled(rows.Rows(J.jz, J.jt, J.jn, every), s1), s2)
+    np.testing.assert_allclose(dense_blocks(rows.gram(supported, w, K), K, n), expected, atol=1e-12)
+
+
+@pytest.mark.parametrize("transition", [False, True])
 def test_gram_on_row_supports_equals_the_dense_gram(transition):
     """Rows that are zero outside their declared columns: the run-by-run Gram blocks equal the
     dense ones (and a wrong partition of the rows is refused by name)."""

@@ -103,10 +103,14 @@ class BlockCholesky:
         return jnp.swapaxes(chains, -1, -2)
 
 
-def _factor_tridiagonal(D, L, order, s, shift):
+def _factor_tridiagonal(D, L, order, s, shift, free=None, buffers=None):
     """Two-ended block Cholesky of the tridiagonal part, D's diagonals plus ``shift`` (K, n), with
-    each knot's variables in the order ``order`` (static (n,) indices; None: as given), L's
-    columns non-zero only in the last s of that order (``coupled_order``).
+    each knot's variables in the order ``order`` (static (n,) indices; None: as given; ``shift``
+    and ``free`` already in that order), L's columns non-zero only in the last s of that order
+    (``coupled_order``). free (K, n) (optional): 0 on the variables held fixed, whose rows and
+    columns are replaced by the identity's block by block (``factor``). buffers (optional): the
+    (forward, backward) ``Chain`` of an earlier factorisation of the same shapes, whose arrays
+    hold the new factors: every slot the solve reads is written again, and no zeros are filled.
 
     Above the middle block M = K // 2, 𝓛[k, k] = Lc_k and 𝓛[k+1, k] = L_k Lc_k^{−T}, non-zero
     in its last s columns (the forward chain's couplings, (n, s)); below it 𝓛[k, k] = Lc_k and
@@ -121,12 +125,21 @@ def _factor_tridiagonal(D, L, order, s, shift):
     K, n = D.shape[:2]
     M, back = K // 2, K - 1 - K // 2  # forward chain 0..M−1, backward chain K−1..M+1: M or M − 1 blocks
     if order is None:
-        block, coupling = (lambda k: D[k] + jnp.diag(shift[k])), (lambda k: L[k][:, n - s :])
+        stored_block, stored_coupling = (lambda k: D[k]), (lambda k: L[k][:, n - s :])
     else:
         # Reordered block by block, in cache: reordering the (K, n, n) arrays up front cost
         # as much as the reordering saves.
-        block = lambda k: _take(_take(D[k], order, 0), order, 1) + jnp.diag(shift[k][order])  # noqa: E731
-        coupling = lambda k: _take(_take(L[k], order, 0), order[n - s :], 1)  # noqa: E731
+        stored_block = lambda k: _take(_take(D[k], order, 0), order, 1)  # noqa: E731
+        stored_coupling = lambda k: _take(_take(L[k], order, 0), order[n - s :], 1)  # noqa: E731
+    if free is None:
+        block = lambda k: stored_block(k) + jnp.diag(shift[k])  # noqa: E731
+        coupling = stored_coupling
+    else:
+        # Masked block by block, in cache: masking the (K, n, n) arrays up front was a pass over
+        # them of its own (≈ 7 ms a take-off iteration).
+        block = lambda k: (free[k][:, None] * stored_block(k) * free[k][None, :]  # noqa: E731
+                           + jnp.diag(free[k] * shift[k] + 1 - free[k]))
+        coupling = lambda k: free[k + 1][:, None] * stored_coupling(k) * free[k][None, n - s :]  # noqa: E731
 
     def below(previous, k):
         """(L_{k−1} Lc_{k−1}^{−T})ᵀ's non-zero rows (s, n), for block k of the forward chain (previous:
@@ -142,7 +155,9 @@ def _factor_tridiagonal(D, L, order, s, shift):
         return A.at[n - s :, n - s :].add(-(Y.T @ Y))
 
     def positive(factor):
-        return jnp.all(jnp.isfinite(factor))
+        # A failed factor is NaN on its diagonal, and a non-finite entry of the lower triangle
+        # reaches the diagonal below it: the diagonal alone, not a pass over the block.
+        return jnp.all(jnp.isfinite(jnp.diagonal(factor)))
 
     def step_backward(carry):
         j, Lb, Wb, count, _ = carry
@@ -167,8 +182,11 @@ def _factor_tridiagonal(D, L, order, s, shift):
     # here without the forward chain's work. Each chain in arrays of its own, updated in place,
     # indexed: with both chains' blocks in one array XLA copied the whole array at every step (a
     # factorisation 3.6× slower), and a scan's stacked outputs factor 1.2× and solve 3.4× slower.
-    Lf, Lb = jnp.zeros((M, n, n), D.dtype), jnp.zeros((M, n, n), D.dtype)
-    Wf, Wb = jnp.zeros((M, n, s), D.dtype), jnp.zeros((M, n, s), D.dtype)
+    if buffers is None:
+        Lf, Lb = jnp.zeros((M, n, n), D.dtype), jnp.zeros((M, n, n), D.dtype)
+        Wf, Wb = jnp.zeros((M, n, s), D.dtype), jnp.zeros((M, n, s), D.dtype)
+    else:
+        (Lf, Wf), (Lb, Wb) = ((c.blocks, c.couplings) for c in buffers)
     count, ok = jnp.asarray(0), jnp.asarray(True)
     if back >= 1:
         last = cholesky(block(K - 1))
@@ -266,26 +284,39 @@ def _take(x, indices, axis):
     return jnp.concatenate([jax.lax.slice_in_dim(x, a, b, axis=axis) for a, b in runs], axis=axis)
 
 
-def factor(D, L, B, C, coupled=None, shift=None, corner_shift=None):
+def factor(D, L, B, C, coupled=None, shift=None, corner_shift=None, free=None, into=None):
     """Factor the bordered block-tridiagonal SPD matrix.
 
     D: (K, n, n) diagonal blocks; L: (K − 1, n, n) blocks below the diagonal (block (k+1, k));
     B: (K, n, m) border; C: (m, m). coupled (static, optional): the columns in which every L_k
     can be non-zero (entries of L outside them are ignored: they must be 0). shift (K, n),
     corner_shift (m,) (optional): added to the diagonals of D and C, block by block as they are
-    factored (an inertia correction's attempts then share one D). Returns a ``BlockCholesky``.
+    factored (an inertia correction's attempts then share one D). free (optional): a pair
+    ((K, n), (m,)) of 0/1 masks, 0 on the variables held fixed: their rows and columns (of D, L, B
+    and C) are replaced by the identity's and their shifts ignored, so that ``solve`` returns
+    the right-hand side there. into (optional): a ``BlockCholesky`` of the same shapes whose
+    storage the new factor reuses (an inertia correction's earlier attempt: no zeros filled per
+    attempt). Returns a ``BlockCholesky``.
     """
     D, L, B, C = (jnp.asarray(a) for a in (D, L, B, C))
     n = D.shape[-1]
     shift = jnp.zeros(D.shape[:2], D.dtype) if shift is None else jnp.asarray(shift)
-    C = C if corner_shift is None else C + jnp.diag(corner_shift)
+    corner_shift = jnp.zeros(C.shape[:1], C.dtype) if corner_shift is None else jnp.asarray(corner_shift)
+    if free is not None:
+        fz, ft = (jnp.asarray(f, D.dtype) for f in free)
+        B = fz[:, :, None] * B * ft
+        C = ft[:, None] * C * ft[None, :] + jnp.diag(1 - ft)
+        corner_shift = ft * corner_shift
+    C = C + jnp.diag(corner_shift)
     order, s = coupled_order(n, coupled)
     # Coupled columns already last: nothing to reorder (the same run time, half the compilation).
     order = None if order == tuple(range(n)) else order
     p = None if order is None else np.asarray(order)
     if p is not None:
-        B = _take(B, p, 1)
-    forward, middle, backward, factored = _factor_tridiagonal(D, L, p, s, shift)
+        B, shift = _take(B, p, 1), _take(shift, p, 1)
+        fz = None if free is None else _take(fz, p, 1)
+    buffers = None if into is None else (into.forward, into.backward)
+    forward, middle, backward, factored = _factor_tridiagonal(D, L, p, s, shift, None if free is None else fz, buffers)
     K = D.shape[0]
     # A⁻¹ B only when every block was factored: an inertia correction's failed attempts (1.5 of
     # the 2.5 per iteration on take-off N = 70) then cost no solve.

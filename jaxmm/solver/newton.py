@@ -52,14 +52,6 @@ def masks(b, dtype):
     return Masks(1 - fixed_z, 1 - fixed_t, fixed_z, fixed_t)
 
 
-def fixed_out(hessian, m):
-    """Blocks (D, L, B, C) with the fixed variables' rows and columns out (1 on their diagonal)."""
-    fz, ft = m.free_z, m.free_theta
-    D, L, Bd, C = hessian
-    return (fz[:, :, None] * D * fz[:, None, :] + jax.vmap(jnp.diag)(m.fixed_z), fz[1:, :, None] * L * fz[:-1, None, :],
-            fz[:, :, None] * Bd * ft[None, None, :], ft[:, None] * C * ft[None, :] + jnp.diag(m.fixed_theta))
-
-
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class System:
@@ -105,25 +97,28 @@ def next_regularisation(delta, last, decrease):
     return jnp.where(delta == 0.0, jnp.where(last == 0.0, 1e-4, resumed), delta * jnp.where(last == 0.0, 100.0, 8.0))
 
 
-def factor(blocks_at, diagonal_at, first, grow, correct, ceiling, K, coupled=None):
-    """The inertia correction: factor ``blocks_at(δ)`` (fixed-out blocks (D, L, B, C)) with the
-    diagonal ``diagonal_at(δ)`` ((K, nz), (ng,)) added, from δ = first, δ ← grow(δ) while the
-    factorisation fails, ``correct`` holds and δ < ceiling. Every attempt runs at this one call
-    site of ``linalg.factor`` (the interior-point iteration's, with ``next_regularisation``, and
-    the sensitivity's preconditioner, with its own growth).
+def factor(blocks_at, diagonal_at, first, grow, correct, ceiling, K, coupled=None, masks=None):
+    """The inertia correction: factor ``blocks_at(δ)`` (blocks (D, L, B, C)) with the diagonal
+    ``diagonal_at(δ)`` ((K, nz), (ng,)) added and the fixed variables of ``masks`` (``Masks``,
+    optional) held out, from δ = first, δ ← grow(δ) while the factorisation fails, ``correct``
+    holds and δ < ceiling. Every attempt runs at this one call site of ``linalg.factor`` (the
+    interior-point iteration's, with ``next_regularisation``, and the sensitivity's
+    preconditioner, with its own growth), each in the storage of the one before.
 
     Returns (δ, the factor, whether it factored, the diagonal blocks factored over all attempts)."""
+    free = None if masks is None else (masks.free_z, masks.free_theta)
 
-    def attempt(delta):
+    def attempt(delta, into=None):
         shift, corner_shift = diagonal_at(delta)
-        return linalg.factor(*blocks_at(delta), coupled=coupled, shift=shift, corner_shift=corner_shift)
+        return linalg.factor(*blocks_at(delta), coupled=coupled, shift=shift, corner_shift=corner_shift, free=free,
+                             into=into)
 
     def needs_more(s):
         return ~s.tried | (correct & ~s.ok & (s.delta < ceiling))
 
     def more(s):
         delta = jnp.where(s.tried, grow(s.delta), first)
-        chol = attempt(delta)
+        chol = attempt(delta, s.chol)
         return Correction(delta, chol, chol.ok, s.work + attempted(chol, K), jnp.asarray(True))
 
     empty = zeros_like(jax.eval_shape(attempt, first))

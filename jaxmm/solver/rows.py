@@ -19,12 +19,14 @@ class Rows:
     """Jacobians of one group: jz (R, m, n) w.r.t. the row's knot, jn (R, m, n) w.r.t. the next
     knot (transition rows; None for path rows, R = K), jt (R, m, ng) w.r.t. the globals;
     supports (static, optional): the group's ``stagewise.RowSupport`` partition of its m rows,
-    which ``gram`` exploits."""
+    which ``gram`` exploits; scale (R, m) (optional): each row's factor, the rows being
+    scale ⊙ (jz, jn, jt) (``scaled``)."""
 
     jz: jax.Array
     jt: jax.Array
     jn: jax.Array | None = None
     supports: tuple | None = dataclasses.field(default=None, metadata=dict(static=True))
+    scale: jax.Array | None = None
 
 
 def group_rows(blocks, group, supports=None):
@@ -49,9 +51,14 @@ def group_rows(blocks, group, supports=None):
 
 
 def scaled(rows, scale):
-    """The rows times scale (R, m), row by row."""
-    return dataclasses.replace(rows, **{name: None if j is None else j * scale[..., None]
-                                        for name, j in (("jz", rows.jz), ("jt", rows.jt), ("jn", rows.jn))})
+    """The rows times scale (R, m), row by row: the factor is kept beside the Jacobians
+    (``Rows.scale``) and applied to the row vectors, not to the Jacobians (a pass over them)."""
+    return dataclasses.replace(rows, scale=scale if rows.scale is None else rows.scale * scale)
+
+
+def _scale(rows, v):
+    """v (R, m) times the rows' factors."""
+    return v if rows.scale is None else v * rows.scale
 
 
 def apply(rows, dz, dt):
@@ -60,11 +67,12 @@ def apply(rows, dz, dt):
         out = jnp.einsum("kmn,kn->km", rows.jz, dz)
     else:
         out = jnp.einsum("kmn,kn->km", rows.jz, dz[:-1]) + jnp.einsum("kmn,kn->km", rows.jn, dz[1:])
-    return out + jnp.einsum("kmg,g->km", rows.jt, dt)
+    return _scale(rows, out + jnp.einsum("kmg,g->km", rows.jt, dt))
 
 
 def pull(rows, v, K):
     """Jᵀ v for row weights v (R, m): (gz (K, n), gt (ng,))."""
+    v = _scale(rows, v)
     if rows.jn is None:
         gz = jnp.einsum("kmn,km->kn", rows.jz, v)
     else:
@@ -84,6 +92,7 @@ def gram(rows, w, K, into=None):
     (on iRonCub ≈ 3 % of a dense block's products)."""
     jz, jt = rows.jz, rows.jt
     n, ng = jz.shape[-1], jt.shape[-1]
+    w = _scale(rows, _scale(rows, w))
     if into is None:
         into = (jnp.zeros((K, n, n), w.dtype), jnp.zeros((K - 1, n, n), w.dtype), jnp.zeros((K, n, ng), w.dtype),
                 jnp.zeros((ng, ng), w.dtype))
