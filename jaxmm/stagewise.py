@@ -255,22 +255,69 @@ def row_supports(nlp):
     return {} if f is None else dict(f(nlp.args))
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Coupling:
+    """Sub-diagonal blocks L_k = ∂²/∂z_{k+1}∂z_k (k < K − 1) non-zero only at ``rows`` (of z_{k+1})
+    × ``columns`` (of z_k), static index tuples into a knot of ``size`` variables: values
+    (K − 1, r, c). Applied to vectors as they are (``below``, ``above``), not as (K − 1, nz, nz)
+    blocks (``dense``): on iRonCub the transition rows are curved in 27 of 356 columns."""
+
+    values: jax.Array
+    rows: tuple = dataclasses.field(metadata=dict(static=True))
+    columns: tuple = dataclasses.field(metadata=dict(static=True))
+    size: int = dataclasses.field(metadata=dict(static=True))
+
+    def dense(self):
+        """The blocks (K − 1, size, size)."""
+        r, c = np.asarray(self.rows, dtype=int), np.asarray(self.columns, dtype=int)
+        blocks = jnp.zeros(self.values.shape[:1] + (self.size, self.size), self.values.dtype)
+        return blocks.at[:, r[:, None], c[None, :]].set(self.values)
+
+    def below(self, x):
+        """L_k x_k for x (K, size): (K − 1, size)."""
+        r, c = np.asarray(self.rows, dtype=int), np.asarray(self.columns, dtype=int)
+        product = jnp.einsum("krc,kc->kr", self.values, x[:-1][:, c])
+        return jnp.zeros((x.shape[0] - 1, self.size), x.dtype).at[:, r].set(product)
+
+    def above(self, x):
+        """L_kᵀ x_{k+1} for x (K, size): (K − 1, size)."""
+        r, c = np.asarray(self.rows, dtype=int), np.asarray(self.columns, dtype=int)
+        product = jnp.einsum("krc,kr->kc", self.values, x[1:][:, r])
+        return jnp.zeros((x.shape[0] - 1, self.size), x.dtype).at[:, c].set(product)
+
+
+def _curvature_columns(nlp, nz):
+    """The transition functions' curvature columns of (z_k, z_{k+1}) (0..2 nz − 1), checked."""
+    f = nlp.functions
+    columns = (np.arange(2 * nz) if f.transition_curvature_columns is None
+               else np.asarray(f.transition_curvature_columns(nlp.args), dtype=int).reshape(-1))
+    if columns.size != np.unique(columns).size or (columns.size and (columns.min() < 0 or columns.max() >= 2 * nz)):
+        raise ValueError(f"transition_curvature_columns must be distinct columns in 0..{2 * nz - 1}, "
+                         f"got {columns.tolist()}")
+    return columns
+
+
+def zero_coupling(nlp, K, nz, dtype):
+    """A zero ``Coupling`` of the structure ``constraint_curvature(…, compact=True)`` returns."""
+    columns = _curvature_columns(nlp, nz)
+    rows, cols = tuple(int(c) - nz for c in columns[columns >= nz]), tuple(int(c) for c in columns[columns < nz])
+    return Coupling(jnp.zeros((K - 1, len(rows), len(cols)), dtype), rows, cols, nz)
+
+
 def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path_inequality, transition_inequality,
-                         path_linearisation=None):
+                         path_linearisation=None, compact=False):
     """Blocks of Σ yᵢ ∇²cᵢ for the given multipliers (shaped like ``Residuals``' constraints);
     path_linearisation: ``Blocks.path_linearisation`` at the same (Z, θ), for the NLP's
     ``path_hessian`` to reuse (None: it computes what it needs).
 
     Returns (D (K, nz, nz) diagonal blocks, L (K − 1, nz, nz) sub-diagonal blocks ∂²/∂z_{k+1}∂z_k,
-    B (K, nz, ng) knot–global blocks, C (ng, ng)).
+    B (K, nz, ng) knot–global blocks, C (ng, ng)); with ``compact``, L as a ``Coupling`` on the
+    transition curvature columns.
     """
     f, a = nlp.functions, nlp.args
     K, nz = Z.shape
-    columns = (np.arange(2 * nz) if f.transition_curvature_columns is None
-               else np.asarray(f.transition_curvature_columns(a), dtype=int).reshape(-1))
-    if columns.size != np.unique(columns).size or (columns.size and (columns.min() < 0 or columns.max() >= 2 * nz)):
-        raise ValueError(f"transition_curvature_columns must be distinct columns in 0..{2 * nz - 1}, "
-                         f"got {columns.tolist()}")
+    columns = _curvature_columns(nlp, nz)
 
     through = None if f.transition_through_columns is None else f.transition_through_columns(a)
     if through is not None:
@@ -301,9 +348,9 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
     inner_now = inner[:, now][:, :, now]
     inner_next = inner[:, following][:, :, following]
     D = D.at[:-1, cn[:, None], cn[None, :]].add(inner_now).at[1:, cf[:, None], cf[None, :]].add(inner_next)
-    L = jnp.zeros((K - 1, nz, nz), Z.dtype).at[:, cf[:, None], cn[None, :]].set(inner[:, following][:, :, now])
+    L = Coupling(inner[:, following][:, :, now], tuple(int(c) for c in cf), tuple(int(c) for c in cn), nz)
     B = B + _before(mixed[:, :nz]) + _after(mixed[:, nz:])
-    return D, L, B, C + jnp.sum(corner, axis=0)
+    return D, L if compact else L.dense(), B, C + jnp.sum(corner, axis=0)
 
 
 def _transition_curvature(functions, args, z, z_next, theta, y_t, y_h, columns, through=None):

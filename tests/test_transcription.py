@@ -1,6 +1,7 @@
 """The transcription: block Jacobians against dense autodiff, costs, bounds and scenarios."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -346,6 +347,20 @@ def test_constraint_curvature_matches_jax_hessian(integration):
             assert np.abs(a - b).max() <= 1e-12 * max(1.0, np.abs(b).max()), name
         variants.append(jax.jit(stagewise.constraint_curvature)(nlp, Z, theta, *y,
                                                                 path_linearisation=given.path_linearisation))
+        # The coupling blocks kept on the transition curvature's columns (as the solver keeps
+        # them): the same blocks, and the same products with vectors.
+        compact = jax.jit(functools.partial(stagewise.constraint_curvature, compact=True))(
+            nlp, Z, theta, *y, path_linearisation=given.path_linearisation)
+        coupling, L = compact[1], np.asarray(variants[-1][1])
+        assert isinstance(coupling, stagewise.Coupling) and len(coupling.rows) * len(coupling.columns) < L[0].size
+        np.testing.assert_array_equal(np.asarray(coupling.dense()), L)
+        for a, b in zip(compact[::2] + compact[3:], variants[-1][::2] + variants[-1][3:]):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        x = np.asarray(jax.random.normal(key, Z.shape))
+        np.testing.assert_allclose(np.asarray(coupling.below(x)), np.einsum("kab,kb->ka", L, x[:-1]), atol=1e-12)
+        np.testing.assert_allclose(np.asarray(coupling.above(x)), np.einsum("kba,kb->ka", L, x[1:]), atol=1e-12)
+        zero = stagewise.zero_coupling(nlp, Z.shape[0], Z.shape[1], Z.dtype)
+        assert jax.tree.structure(zero) == jax.tree.structure(coupling) and not np.any(np.asarray(zero.dense()))
 
     # Both against the dense Hessian of Σ y·c over all of (Z, θ), cut into blocks.
     K, nz = Z.shape

@@ -228,12 +228,13 @@ class Step:
 
 
 def _lagrangian_hessian(ctx, state, B):
-    """Blocks (D, L, B, C) of the scaled Lagrangian's Hessian: the cost's plus the constraints'
-    curvature at the multipliers (from the blocks' kinematic curvature, ``stagewise``)."""
+    """Blocks (D, L, B, C) of the scaled Lagrangian's Hessian, L a ``stagewise.Coupling``: the
+    cost's plus the constraints' curvature at the multipliers (from the blocks' kinematic
+    curvature, ``stagewise``)."""
     problem, it = ctx.problem, state.iterate
     D, L, Bk, C = stagewise.constraint_curvature(problem.nlp, it.P[0], it.P[1],
                                                  *(yi * s for yi, s in zip(it.y, problem.row_scale)),
-                                                 path_linearisation=B.path_linearisation)
+                                                 path_linearisation=B.path_linearisation, compact=True)
     # The knot costs couple no two knots: nothing is added to L (a pass over its (K − 1, nz, nz)).
     cs = problem.cost_scale
     return D + cs * B.cost_zz, L, Bk + cs * B.cost_ztheta, C + cs * B.cost_thetatheta
@@ -249,6 +250,9 @@ def _system(ctx, state, B, J, sigma, D2, zeta):
     options, problem, m, K = ctx.options, ctx.problem, ctx.masks, ctx.K
     restoring = state.restoring
     base = jax.lax.cond(restoring, lambda: _zero_hessian(ctx, B), lambda: _lagrangian_hessian(ctx, state, B))
+    # The condensed matrix needs L's blocks; the refinement's products with W take the coupling
+    # as it is (two passes over (K − 1, nz, nz) blocks fewer per residual).
+    dense = (base[0], base[1].dense()) + base[2:]
     reg = jnp.where(restoring, 1.0, options.dual_regularisation)
 
     def extra(delta):
@@ -264,10 +268,10 @@ def _system(ctx, state, B, J, sigma, D2, zeta):
     # With ``ipopt_slacks`` δ_w regularises the slacks too (IPOPT's δ_s = δ_w): their 1/σ, and so
     # the inequality rows' weights in the condensed matrix, depend on δ_w.
     if options.ipopt_slacks:
-        equalities = rows.grams(J[:2], slack_terms(0.0)[2][:2], K, into=base)
+        equalities = rows.grams(J[:2], slack_terms(0.0)[2][:2], K, into=dense)
         blocks_at = lambda delta: rows.grams(J[2:], slack_terms(delta)[2][2:], K, into=equalities)  # noqa: E731
     else:
-        unshifted = rows.grams(J, slack_terms(0.0)[2], K, into=base)
+        unshifted = rows.grams(J, slack_terms(0.0)[2], K, into=dense)
         blocks_at = lambda delta: unshifted  # noqa: E731
 
     def diagonal_at(delta):
@@ -286,9 +290,9 @@ def _system(ctx, state, B, J, sigma, D2, zeta):
 
 
 def _zero_hessian(ctx, B):
-    """Zero blocks (D, L, B, C) of the Hessian's shapes (the restoration phase's W)."""
+    """Zero blocks (D, L, B, C) of ``_lagrangian_hessian``'s shapes (the restoration phase's W)."""
     K, nz, ng = ctx.K, B.cost_zz.shape[-1], B.cost_thetatheta.shape[-1]
-    return (jnp.zeros((K, nz, nz), B.cost_zz.dtype), jnp.zeros((K - 1, nz, nz), B.cost_zz.dtype),
+    return (jnp.zeros((K, nz, nz), B.cost_zz.dtype), stagewise.zero_coupling(ctx.problem.nlp, K, nz, B.cost_zz.dtype),
             jnp.zeros((K, nz, ng), B.cost_zz.dtype), jnp.zeros((ng, ng), B.cost_zz.dtype))
 
 

@@ -342,8 +342,13 @@ def solve(chol, r, s):
 
 
 def matvec(D, L, B, C, x, y):
-    """Product of the bordered block-tridiagonal symmetric matrix with (x (K, n), y (m,))."""
+    """Product of the bordered block-tridiagonal symmetric matrix with (x (K, n), y (m,)). L: the
+    (K − 1, n, n) blocks, or an operator on them with ``below(x)`` = (L_k x_k)_k and
+    ``above(x)`` = (L_kᵀ x_{k+1})_k, each (K − 1, n) (``stagewise.Coupling``)."""
     top = jnp.einsum("kab,kb->ka", D, x) + jnp.einsum("kab,b->ka", B, y)
-    top = top.at[1:].add(jnp.einsum("kab,kb->ka", L, x[:-1]))
-    top = top.at[:-1].add(jnp.einsum("kba,kb->ka", L, x[1:]))
+    if hasattr(L, "below"):
+        below, above = L.below(x), L.above(x)
+    else:
+        below, above = jnp.einsum("kab,kb->ka", L, x[:-1]), jnp.einsum("kba,kb->ka", L, x[1:])
+    top = top.at[1:].add(below).at[:-1].add(above)
     return top, jnp.einsum("kab,ka->b", B, x) + C @ y

@@ -58,9 +58,9 @@ class System:
     """A condensed Newton system: J, the four groups' ``rows.Rows``; weights (R, m) per group,
     each row's weight w in the condensed matrix; inv_sigma, 1/(σ_s + δ_s) per slack leaf (0 where
     a slack has no barrier); hessian, the blocks (D, L, B, C) of W (the Lagrangian's Hessian;
-    zeros in the restoration phase), masked by nothing; diagonal, (Σ + the regularisation) of
-    (Z (K, nz), θ (ng,)); slack_diagonal, σ_s + δ_s per slack leaf; active, the inequality rows
-    with a bound; masks, the fixed variables (``Masks``)."""
+    zeros in the restoration phase; L may be a ``stagewise.Coupling``), masked by nothing;
+    diagonal, (Σ + the regularisation) of (Z (K, nz), θ (ng,)); slack_diagonal, σ_s + δ_s per
+    slack leaf; active, the inequality rows with a bound; masks, the fixed variables (``Masks``)."""
 
     J: tuple
     weights: tuple
