@@ -261,7 +261,8 @@ class Coupling:
     """Sub-diagonal blocks L_k = ∂²/∂z_{k+1}∂z_k (k < K − 1) non-zero only at ``rows`` (of z_{k+1})
     × ``columns`` (of z_k), static index tuples into a knot of ``size`` variables: values
     (K − 1, r, c). Applied to vectors as they are (``below``, ``above``), not as (K − 1, nz, nz)
-    blocks (``dense``): on iRonCub the transition rows are curved in 27 of 356 columns."""
+    blocks (``dense``): on iRonCub the transition rows are curved in 47 of the 356 columns of
+    (z_k, z_{k+1}), and the blocks are 19 × 28."""
 
     values: jax.Array
     rows: tuple = dataclasses.field(metadata=dict(static=True))
