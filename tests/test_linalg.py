@@ -32,6 +32,20 @@ def random_system(K, n, m, seed):
     return A, D, L, B, C
 
 
+def coupled_only(A, L, coupled):
+    """(A, L) with the coupling blocks L zeroed outside the ``coupled`` columns (None: all kept),
+    in the blocks and in the dense matrix A alike (copies)."""
+    if coupled is None:
+        return A, L
+    K, n = L.shape[0] + 1, L.shape[-1]
+    A, L = A.copy(), L.copy()
+    L[:, :, np.setdiff1d(np.arange(n), coupled)] = 0.0
+    for k in range(K - 1):
+        A[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n] = L[k]
+        A[k * n : (k + 1) * n, (k + 1) * n : (k + 2) * n] = L[k].T
+    return A, L
+
+
 @pytest.mark.parametrize("K, n, m", [(1, 3, 1), (2, 3, 1), (3, 2, 1), (7, 5, 2), (8, 4, 2), (20, 12, 1), (5, 4, 0)])
 def test_solve_matches_dense(K, n, m):
     A, D, L, B, C = random_system(K, n, m, seed=K * 100 + n)
@@ -101,13 +115,8 @@ def test_coupling_in_some_columns(K, n, m, coupled):
     and a wrong declaration (a non-zero column left out) is not silently the same; the columns
     anywhere (the blocks reordered) or already last (nothing reordered)."""
     A, D, L, B, C = random_system(K, n, m, seed=K + n)
-    outside = np.setdiff1d(np.arange(n), coupled)
-    L = L.copy()
-    L[:, :, outside] = 0
-    for k in range(K - 1):  # keep A consistent with the zeroed blocks, still SPD (diagonally dominant)
-        A[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n] = L[k]
-        A[k * n : (k + 1) * n, (k + 1) * n : (k + 2) * n] = L[k].T
-    A[: K * n, : K * n] += 50 * np.eye(K * n)
+    A, L = coupled_only(A, L, coupled)
+    A[: K * n, : K * n] += 50 * np.eye(K * n)  # still SPD with the zeroed blocks (diagonally dominant)
     D = D + 50 * np.eye(n)
     rng = np.random.default_rng(1)
     r, s = rng.normal(size=(K, n)), rng.normal(size=m)
@@ -134,11 +143,8 @@ def test_diagonal_shifts_added_as_factored(coupled):
     with or without the coupled-columns reordering, and a shift that makes a block indefinite is
     reported as such."""
     K, n, m = 6, 6, 2
-    _, D, L, B, C = random_system(K, n, m, seed=11)
-    if coupled is not None:
-        outside = np.setdiff1d(np.arange(n), coupled)
-        L = L.copy()
-        L[:, :, outside] = 0.0
+    A, D, L, B, C = random_system(K, n, m, seed=11)
+    _, L = coupled_only(A, L, coupled)
     rng = np.random.default_rng(3)
     shift, corner = rng.uniform(0.1, 2.0, size=(K, n)), rng.uniform(0.1, 2.0, size=m)
     shifted = linalg.factor(D, L, B, C, coupled=coupled, shift=shift, corner_shift=corner)
@@ -171,13 +177,7 @@ def test_fixed_variables_are_held_out(coupled, fixed_global):
     the right-hand side as zeros."""
     K, n, m = 7, 6, 2
     A, D, L, B, C = random_system(K, n, m, seed=31)
-    if coupled is not None:
-        outside = np.setdiff1d(np.arange(n), coupled)
-        L = L.copy()
-        L[:, :, outside] = 0.0
-        for k in range(K - 1):
-            A[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n] = L[k]
-            A[k * n : (k + 1) * n, (k + 1) * n : (k + 2) * n] = L[k].T
+    A, L = coupled_only(A, L, coupled)
     rng = np.random.default_rng(4)
     fz = (rng.uniform(size=(K, n)) > 0.3).astype(float)
     fz[0, :] = 0.0  # a whole knot fixed, as boundary conditions fix one
@@ -204,13 +204,10 @@ def test_storage_of_an_earlier_factor_is_reused_exactly(K, coupled):
     in a chain) or one of another matrix: bit for bit the factor and the solution of a fresh
     factorisation, with K odd and K even (the backward chain's spare slot)."""
     n, m = 6, 1
-    _, D, L, B, C = random_system(K, n, m, seed=41)
-    _, D2, L2, B2, C2 = random_system(K, n, m, seed=42)
-    if coupled is not None:
-        outside = np.setdiff1d(np.arange(n), coupled)
-        L, L2 = L.copy(), L2.copy()
-        L[:, :, outside] = 0.0
-        L2[:, :, outside] = 0.0
+    A, D, L, B, C = random_system(K, n, m, seed=41)
+    A2, D2, L2, B2, C2 = random_system(K, n, m, seed=42)
+    _, L = coupled_only(A, L, coupled)
+    _, L2 = coupled_only(A2, L2, coupled)
     failed_D = D2.copy()
     failed_D[K // 2 + 1] -= 1e3 * np.eye(n)  # the backward chain's last block: its other blocks factored
     failed = linalg.factor(failed_D, L2, B2, C2, coupled=coupled)
