@@ -269,21 +269,24 @@ class Coupling:
     columns: tuple = dataclasses.field(metadata=dict(static=True))
     size: int = dataclasses.field(metadata=dict(static=True))
 
+    def _indices(self):
+        return np.asarray(self.rows, dtype=int), np.asarray(self.columns, dtype=int)
+
     def dense(self):
         """The blocks (K − 1, size, size)."""
-        r, c = np.asarray(self.rows, dtype=int), np.asarray(self.columns, dtype=int)
+        r, c = self._indices()
         blocks = jnp.zeros(self.values.shape[:1] + (self.size, self.size), self.values.dtype)
         return blocks.at[:, r[:, None], c[None, :]].set(self.values)
 
     def below(self, x):
         """L_k x_k for x (K, size): (K − 1, size)."""
-        r, c = np.asarray(self.rows, dtype=int), np.asarray(self.columns, dtype=int)
+        r, c = self._indices()
         product = jnp.einsum("krc,kc->kr", self.values, x[:-1][:, c])
         return jnp.zeros((x.shape[0] - 1, self.size), x.dtype).at[:, r].set(product)
 
     def above(self, x):
         """L_kᵀ x_{k+1} for x (K, size): (K − 1, size)."""
-        r, c = np.asarray(self.rows, dtype=int), np.asarray(self.columns, dtype=int)
+        r, c = self._indices()
         product = jnp.einsum("krc,kr->kc", self.values, x[1:][:, r])
         return jnp.zeros((x.shape[0] - 1, self.size), x.dtype).at[:, c].set(product)
 
@@ -299,10 +302,14 @@ def _curvature_columns(nlp, nz):
     return columns
 
 
+def _coupling_pattern(columns, nz):
+    """(rows of z_{k+1}, columns of z_k) of the coupling blocks, from the curvature columns."""
+    return tuple(int(c) - nz for c in columns[columns >= nz]), tuple(int(c) for c in columns[columns < nz])
+
+
 def zero_coupling(nlp, K, nz, dtype):
     """A zero ``Coupling`` of the structure ``constraint_curvature(…, compact=True)`` returns."""
-    columns = _curvature_columns(nlp, nz)
-    rows, cols = tuple(int(c) - nz for c in columns[columns >= nz]), tuple(int(c) for c in columns[columns < nz])
+    rows, cols = _coupling_pattern(_curvature_columns(nlp, nz), nz)
     return Coupling(jnp.zeros((K - 1, len(rows), len(cols)), dtype), rows, cols, nz)
 
 
@@ -349,7 +356,7 @@ def constraint_curvature(nlp, Z, theta, path_equality, transition_equality, path
     inner_now = inner[:, now][:, :, now]
     inner_next = inner[:, following][:, :, following]
     D = D.at[:-1, cn[:, None], cn[None, :]].add(inner_now).at[1:, cf[:, None], cf[None, :]].add(inner_next)
-    L = Coupling(inner[:, following][:, :, now], tuple(int(c) for c in cf), tuple(int(c) for c in cn), nz)
+    L = Coupling(inner[:, following][:, :, now], *_coupling_pattern(columns, nz), nz)
     B = B + _before(mixed[:, :nz]) + _after(mixed[:, nz:])
     return D, L if compact else L.dense(), B, C + jnp.sum(corner, axis=0)
 
