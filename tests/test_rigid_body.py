@@ -83,6 +83,32 @@ def test_cmm_of_rigid_motion(model, configurations):
     assert np.allclose(h[:3], m * jaxmm.com_jacobian(model, q)[:, 6:] @ s_dot, atol=1e-12)
 
 
+def test_body_composites_keep_mass_first_and_second_moments(model, configurations):
+    """Each body's merged inertial (the CMM's elements) has its elements' mass, first moment and
+    inertia about the robot CoM, in the world at any pose (the parallel-axis theorem)."""
+    from jaxmm.rigid_body import centroidal
+    from jaxmm.rigid_body.kinematics import body_poses
+
+    elements = np.asarray(model.topology.inertial_body, int)
+    assert len(np.unique(elements)) < len(elements)  # some body has several: the merge does something
+    for q in configurations[:3]:
+        R_body, p_body = body_poses(model, q)
+        com, inertia = centroidal.inertials_world(model, R_body, p_body)
+        bodies, mass, merged_com, merged_inertia = centroidal._composites_world(model, R_body, p_body)
+        x = jaxmm.com_position(model, q)
+
+        def about_x(m, c, inertia):
+            r = c - x
+            return inertia + m[:, None, None] * (np.sum(r * r, 1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])
+
+        for k, body in enumerate(bodies):
+            own = elements == body
+            assert np.isclose(mass[k], np.sum(model.inertial_mass[own]), rtol=1e-15)
+            assert np.allclose(mass[k] * merged_com[k], model.inertial_mass[own] @ com[own], rtol=0, atol=1e-14)
+            assert np.allclose(about_x(mass[k:k + 1], merged_com[k:k + 1], merged_inertia[k:k + 1])[0],
+                               np.sum(about_x(model.inertial_mass[own], com[own], inertia[own]), 0), rtol=0, atol=1e-13)
+
+
 def test_vmap_matches_single_calls(model, configurations):
     Q = jnp.asarray(configurations)
     nu = jnp.asarray(np.random.default_rng(6).normal(size=(len(Q), model.nv)))
