@@ -34,8 +34,8 @@ class StagewiseFunctions:
     ``jax.hessian``; linearisation: what ``path_jacobian`` returned at (z, θ), or None (then
     the function computes what it needs itself);
     knot_cost_derivatives (optional): (args, z, θ, d) → ((∂φ/∂z (nz,), ∂φ/∂θ (ng,)),
-    (∂²φ/∂z² (nz, nz), ∂²φ/∂z∂θ (nz, ng), ∂²φ/∂θ² (ng, ng))), the knot cost's gradient and
-    Hessian from one pass, likewise;
+    (∂²φ/∂z² (nz, nz), or a ``KnotHessian`` where it is mostly diagonal, ∂²φ/∂z∂θ (nz, ng),
+    ∂²φ/∂θ² (ng, ng))), the knot cost's gradient and Hessian from one pass, likewise;
     transition_curvature_columns (optional): (args) → the columns of (z_k, z_{k+1}) (a tuple of
     ints in 0..2 nz − 1, static: from args' static fields) in which the transition functions
     are nonlinear for a fixed θ; they must be linear in every other entry. The solver then
@@ -141,11 +141,51 @@ class Residuals:
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
+class KnotHessian:
+    """Knot Hessian blocks diag(d_k) + E H_k Eᵀ: a diagonal (..., n) and a dense block
+    (..., c, c) on the static ``columns`` (c of a knot's n variables; E their columns of the
+    identity). A weighted sum of squares of single entries plus terms in a few of them (iRonCub's
+    knot cost, eq. 32: the squares and the base quaternion's SO(3) log, 4 columns) is held
+    without a dense (n, n) block per knot, and added into the Newton blocks where it is non-zero."""
+
+    diagonal: jax.Array
+    block: jax.Array
+    columns: tuple = dataclasses.field(metadata=dict(static=True))
+
+    @classmethod
+    def of(cls, hessian):
+        """A dense (..., n, n) Hessian as a ``KnotHessian`` (its block on every column)."""
+        n = hessian.shape[-1]
+        return cls(jnp.zeros(hessian.shape[:-1], hessian.dtype), hessian, tuple(range(n)))
+
+    def _everywhere(self):
+        return self.columns == tuple(range(self.diagonal.shape[-1]))
+
+    def dense(self):
+        """The blocks (..., n, n)."""
+        n = self.diagonal.shape[-1]
+        return self.added_to(jnp.zeros(self.diagonal.shape + (n,), self.diagonal.dtype), 1.0)
+
+    def added_to(self, D, scale):
+        """D + scale · these blocks, for D (..., n, n): written into D's diagonal and the block's
+        entries alone."""
+        n = D.shape[-1]
+        diagonal = jnp.arange(n)
+        D = D.at[..., diagonal, diagonal].add(scale * self.diagonal)
+        if self._everywhere():
+            return D + scale * self.block
+        c = np.asarray(self.columns, dtype=int)
+        return D.at[..., c[:, None], c[None, :]].add(scale * self.block)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
 class Blocks:
     """First and second derivatives in block form (K knots, nz knot size, ng globals).
 
-    cost_z (K, nz), cost_theta (ng,): cost gradient; cost_zz (K, nz, nz), cost_ztheta
-    (K, nz, ng), cost_thetatheta (ng, ng): cost Hessian (the cost is knot-separable);
+    cost_z (K, nz), cost_theta (ng,): cost gradient; cost_zz (a ``KnotHessian`` of K blocks
+    nz × nz), cost_ztheta (K, nz, ng), cost_thetatheta (ng, ng): cost Hessian (the cost is
+    knot-separable);
     for a path function p: p_z (K, m, nz), p_theta (K, m, ng); for a transition function t:
     t_z (K − 1, m, nz) w.r.t. z_k, t_znext (K − 1, m, nz) w.r.t. z_{k+1}, t_theta (K − 1, m, ng);
     path_linearisation: ``StagewiseFunctions.path_jacobian``'s reusable part per knot (leading
@@ -154,7 +194,7 @@ class Blocks:
 
     cost_z: jax.Array
     cost_theta: jax.Array
-    cost_zz: jax.Array
+    cost_zz: KnotHessian
     cost_ztheta: jax.Array
     cost_thetatheta: jax.Array
     path_equality_z: jax.Array
@@ -224,6 +264,7 @@ def blocks(nlp, Z, theta, path_multipliers=None):
 
     (cost_z, cost_theta), (cost_zz, cost_ztheta, cost_thetatheta) = jax.vmap(
         knot_cost_derivatives, in_axes=(None, 0, None, 0))(a, Z, theta, nlp.knot_data)
+    cost_zz = cost_zz if isinstance(cost_zz, KnotHessian) else KnotHessian.of(cost_zz)
     global_grad = jax.grad(f.global_cost, argnums=1)
     (pe_z, pe_theta), (pi_z, pi_theta), linearisation = jax.vmap(path_jacobian, in_axes=(None, 0, None) + (0,) * len(y))(
         a, Z, theta, *y)

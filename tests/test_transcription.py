@@ -79,9 +79,10 @@ def test_block_jacobians_equal_dense_autodiff(name, options):
     assert np.allclose(gradient[: K * nz], np.asarray(B.cost_z).reshape(-1), rtol=1e-12, atol=1e-9)
     assert np.allclose(gradient[K * nz :], B.cost_theta, rtol=1e-12, atol=1e-9)
     hessian = np.asarray(jax.jit(jax.hessian(cost))(w))
+    cost_zz = np.asarray(B.cost_zz.dense())
     for k in range(K):
         block = slice(k * nz, (k + 1) * nz)
-        assert np.allclose(hessian[block, block], B.cost_zz[k], rtol=1e-12, atol=1e-9)
+        assert np.allclose(hessian[block, block], cost_zz[k], rtol=1e-12, atol=1e-9)
         assert np.allclose(hessian[block, K * nz :], B.cost_ztheta[k], rtol=1e-12, atol=1e-9)
         off = np.delete(hessian[block, : K * nz], np.arange(k * nz, (k + 1) * nz), axis=1)
         assert np.abs(off).max() == 0.0  # the cost is knot-separable
@@ -223,7 +224,7 @@ def test_every_unbounded_variable_enters_the_cost_or_a_constraint(name):
     nlp = transcription.stagewise_nlp(task)
     Z, theta = _random_point(task, seed=2)
     B = jax.jit(stagewise.blocks)(nlp, Z, theta)
-    used = np.abs(np.diagonal(np.asarray(B.cost_zz), axis1=1, axis2=2))
+    used = np.abs(np.diagonal(np.asarray(B.cost_zz.dense()), axis1=1, axis2=2))
     for group in ("path_equality", "path_inequality"):
         used = used + np.sum(np.asarray(getattr(B, group + "_z")) ** 2, axis=1)
     for group in ("transition_equality", "transition_inequality"):
@@ -555,3 +556,23 @@ def test_joint_torque_family_rows_supports_and_curvature():
 
     dense = np.asarray(jax.jit(jax.hessian(weighted))(jnp.concatenate([Z.reshape(-1), theta])))
     _assert_curvature_blocks_match(curvature, dense, K, nz)
+
+
+def test_knot_hessian_blocks_added_where_they_are_nonzero():
+    """A ``KnotHessian`` (diagonal plus a block on a few columns) equals its dense blocks, and
+    added into other blocks gives their sum; a dense Hessian wrapped by ``of`` likewise."""
+    rng = np.random.default_rng(5)
+    K, n, columns = 3, 7, (1, 4, 5)
+    diagonal, block = rng.normal(size=(K, n)), rng.normal(size=(K, 3, 3))
+    compact = stagewise.KnotHessian(jnp.asarray(diagonal), jnp.asarray(block), columns)
+    expected = np.zeros((K, n, n))
+    for k in range(K):
+        expected[k] = np.diag(diagonal[k])
+        expected[k][np.ix_(columns, columns)] += block[k]
+    D = rng.normal(size=(K, n, n))
+    assert np.array_equal(compact.dense(), expected)
+    assert np.allclose(compact.added_to(jnp.asarray(D), 2.5), D + 2.5 * expected, rtol=0, atol=1e-14)
+    dense = stagewise.KnotHessian.of(jnp.asarray(expected))
+    assert dense.columns == tuple(range(n))
+    assert np.array_equal(dense.dense(), expected)
+    assert np.allclose(dense.added_to(jnp.asarray(D), -1.0), D - expected, rtol=0, atol=1e-14)

@@ -237,7 +237,7 @@ def _lagrangian_hessian(ctx, state, B):
                                                  path_linearisation=B.path_linearisation, compact=True)
     # The knot costs couple no two knots: nothing is added to L (a pass over its (K − 1, nz, nz)).
     cs = problem.cost_scale
-    return D + cs * B.cost_zz, L, Bk + cs * B.cost_ztheta, C + cs * B.cost_thetatheta
+    return B.cost_zz.added_to(D, cs), L, Bk + cs * B.cost_ztheta, C + cs * B.cost_thetatheta
 
 
 def _system(ctx, state, B, J, sigma, D2, zeta):
@@ -291,9 +291,9 @@ def _system(ctx, state, B, J, sigma, D2, zeta):
 
 def _zero_hessian(ctx, B):
     """Zero blocks (D, L, B, C) of ``_lagrangian_hessian``'s shapes (the restoration phase's W)."""
-    K, nz, ng = ctx.K, B.cost_zz.shape[-1], B.cost_thetatheta.shape[-1]
-    return (jnp.zeros((K, nz, nz), B.cost_zz.dtype), stagewise.zero_coupling(ctx.problem.nlp, K, nz, B.cost_zz.dtype),
-            jnp.zeros((K, nz, ng), B.cost_zz.dtype), jnp.zeros((ng, ng), B.cost_zz.dtype))
+    K, nz, ng, dtype = ctx.K, B.cost_z.shape[-1], B.cost_thetatheta.shape[-1], B.cost_z.dtype
+    return (jnp.zeros((K, nz, nz), dtype), stagewise.zero_coupling(ctx.problem.nlp, K, nz, dtype),
+            jnp.zeros((K, nz, ng), dtype), jnp.zeros((ng, ng), dtype))
 
 
 def iteration(ctx, state, judge_only=False):

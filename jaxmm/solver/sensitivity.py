@@ -331,8 +331,9 @@ def _kkt(nlp, Z, theta, y, barrier, options):
         scale = jnp.where(mask, 1.0 / jnp.where(largest > 0, largest, 1.0), 0.0)
         scales.append(scale)
         jacobians.append(rows.scaled(r, scale))
+    cost_zz = B.cost_zz.dense()
     D, L, Bd, C = rows.add(
-        (B.cost_zz, jnp.zeros_like(B.cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta),
+        (cost_zz, jnp.zeros_like(cost_zz[1:]), B.cost_ztheta, B.cost_thetatheta),
         stagewise.constraint_curvature(nlp, Z, theta, *(getattr(y, g) for g in GROUPS),
                                        path_linearisation=B.path_linearisation),
     )

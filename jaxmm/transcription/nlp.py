@@ -12,7 +12,7 @@ import numpy as np
 
 from jaxmm.rigid_body.centroidal import centroidal_kinematics_curvature, centroidal_kinematics_derivatives
 from jaxmm.transcription import constraints, costs
-from jaxmm.stagewise import RowSupport, StagewiseFunctions, StagewiseNLP
+from jaxmm.stagewise import KnotHessian, RowSupport, StagewiseFunctions, StagewiseNLP
 from jaxmm.transcription.variables import Trajectory
 
 
@@ -34,7 +34,8 @@ def _knot_cost_derivatives(task, z, theta, role):
     exact, from one forward-over-reverse pass. The cost (eq. 32) is a weighted sum of squares of
     single entries of z̃ (a diagonal Hessian, read off one Hessian-vector product with ones) but
     for the base quaternion's SO(3) log at knot 0 (4 tangents) and T_total, which multiplies the
-    running terms (ng tangents): 5 + ng tangents, the gradient their shared primal."""
+    running terms (ng tangents): 5 + ng tangents, the gradient their shared primal. ∂²/∂z̃² is
+    returned as what it is, a ``KnotHessian``: that diagonal and the quaternion's 4 × 4 block."""
     nz = z.shape[0]
     quaternion = np.asarray(_columns(task.layout, "base_quaternion"))
     squares = np.setdiff1d(np.arange(nz), quaternion)
@@ -51,10 +52,9 @@ def _knot_cost_derivatives(task, z, theta, role):
     gradient, products = jax.vmap(lambda e: jax.jvp(jax.grad(cost), (w0,), (e,)), out_axes=(None, 0))(
         jnp.asarray(tangents, w0.dtype))
     diagonal, rotation, globals_ = products[0], products[1:1 + quaternion.size], products[1 + quaternion.size:]
-    hessian = jnp.diag(jnp.zeros_like(w0).at[squares].set(diagonal[squares]))
-    hessian = hessian.at[np.ix_(quaternion, quaternion)].set(rotation[:, quaternion])
-    hessian = hessian.at[:, nz:].set(globals_.T).at[nz:, :].set(globals_)
-    return (gradient[:nz], gradient[nz:]), (hessian[:nz, :nz], hessian[:nz, nz:], hessian[nz:, nz:])
+    zz = KnotHessian(jnp.zeros(nz, w0.dtype).at[squares].set(diagonal[squares]),
+                     rotation[:, quaternion], tuple(int(c) for c in quaternion))
+    return (gradient[:nz], gradient[nz:]), (zz, globals_[:, :nz].T, globals_[:, nz:])
 
 
 def _global_cost(task, theta):
