@@ -94,7 +94,7 @@ def test_body_composites_keep_mass_first_and_second_moments(model, configuration
     for q in configurations[:3]:
         R_body, p_body = body_poses(model, q)
         com, inertia = centroidal.inertials_world(model, R_body, p_body)
-        bodies, mass, merged_com, merged_inertia = centroidal._composites_world(model, R_body, p_body)
+        bodies, mass, merged_com, merged_inertia = centroidal.body_inertials_world(model, R_body, p_body)
         x = jaxmm.com_position(model, q)
 
         def about_x(m, c, inertia):
@@ -107,6 +107,19 @@ def test_body_composites_keep_mass_first_and_second_moments(model, configuration
             assert np.allclose(mass[k] * merged_com[k], model.inertial_mass[own] @ com[own], rtol=0, atol=1e-14)
             assert np.allclose(about_x(mass[k:k + 1], merged_com[k:k + 1], merged_inertia[k:k + 1])[0],
                                np.sum(about_x(model.inertial_mass[own], com[own], inertia[own]), 0), rtol=0, atol=1e-13)
+
+
+def test_a_massless_link_keeps_the_momentum_finite():
+    """A link of zero mass with an inertia (a URDF may say so): two unit-inertia links on a z
+    hinge, the base of 2 kg at the CoM, give h = (2 ṗ, ω + (ω + ṡ e_z)) exactly."""
+    inertial = '<inertial><origin xyz="0 0 0" rpy="0 0 0"/><mass value="{}"/><inertia ixx="1" iyy="1" izz="1" ixy="0" ixz="0" iyz="0"/></inertial>'
+    xml = (f'<robot name="massless"><link name="l0">{inertial.format(2.0)}</link><link name="l1">{inertial.format(0.0)}</link>'
+           '<joint name="j1" type="revolute"><parent link="l0"/><child link="l1"/><origin xyz="0 0 0" rpy="0 0 0"/>'
+           '<axis xyz="0 0 1"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint></robot>')
+    model = jaxmm.load_robot(xml).model
+    q, nu = np.array([0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0, 0.5]), np.arange(7.0)
+    h = np.asarray(jaxmm.centroidal_momentum(model, q, nu))
+    assert np.allclose(h, np.concatenate([2 * nu[:3], 2 * nu[3:6] + nu[6] * np.eye(3)[2]]), rtol=0, atol=1e-14)
 
 
 def test_vmap_matches_single_calls(model, configurations):

@@ -34,16 +34,19 @@ def _body_composites(model):
     bodies, owner = np.unique(np.asarray(model.topology.inertial_body, int), return_inverse=True)
     group = np.eye(len(bodies))[owner].T  # (nm, ne): which element belongs to which body
     mass = group @ model.inertial_mass
-    com = group @ (model.inertial_mass[:, None] * model.inertial_com) / mass[:, None]
+    # A body whose elements weigh nothing (a URDF may say so) keeps its CoM at its origin.
+    com = group @ (model.inertial_mass[:, None] * model.inertial_com) / jnp.where(mass > 0, mass, 1.0)[:, None]
     d = model.inertial_com - com[owner]
     shifted = model.inertial_inertia + model.inertial_mass[:, None, None] * (
         jnp.sum(d * d, axis=1)[:, None, None] * jnp.eye(3) - d[:, :, None] * d[:, None, :])
     return bodies, mass, com, jnp.einsum("be,eij->bij", group, shifted)
 
 
-def _composites_world(model, R_body, p_body):
-    """``_body_composites`` in the world: bodies (static), mass (nm,), world CoM (nm, 3) and
-    world-aligned inertia about it (nm, 3, 3)."""
+def body_inertials_world(model, R_body, p_body):
+    """Each body's inertial elements merged into one (the parallel-axis theorem), in the world:
+    the bodies with mass (static indices, nm), their mass (nm,) [kg], world CoM (nm, 3) [m] and
+    world-aligned inertia about it (nm, 3, 3) [kg m²], from the body poses (``body_poses``).
+    The same total mass, first and second moments as ``inertials_world``'s elements."""
     bodies, mass, com, inertia = _body_composites(model)
     R = R_body[bodies]
     return bodies, mass, p_body[bodies] + jnp.einsum("eij,ej->ei", R, com), R @ inertia @ jnp.swapaxes(R, 1, 2)
@@ -67,11 +70,11 @@ def centroidal_momentum_matrix(model, q):
     of the subtree the joint moves, so the cost is linear in the number of links.
     """
     R_body, p_body = body_poses(model, q)
-    return _cmm_from_poses(model, q, R_body, p_body, _composites_world(model, R_body, p_body))
+    return _cmm_from_poses(model, q, R_body, p_body, body_inertials_world(model, R_body, p_body))
 
 
 def _cmm_from_poses(model, q, R_body, p_body, composites):
-    """J_CMM(q) from the body poses and ``_composites_world`` at them."""
+    """J_CMM(q) from the body poses and ``body_inertials_world`` at them."""
     bodies, mass, com, inertia = composites
     m = jnp.sum(mass)
     x = mass @ com / m
@@ -107,7 +110,7 @@ def _cmm_from_poses(model, q, R_body, p_body, composites):
 
 def _bundle(model, q, frames):
     R_body, p_body = body_poses(model, q)
-    composites = _composites_world(model, R_body, p_body)
+    composites = body_inertials_world(model, R_body, p_body)
     _, mass, com, _ = composites
     bodies = np.asarray(model.topology.frame_body, int)[list(frames)]
     indices = np.asarray(frames, int)
