@@ -17,13 +17,17 @@ def total_mass(model):
     return jnp.sum(model.inertial_mass)
 
 
+def _in_world(R_body, p_body, bodies, com, inertia):
+    """Inertials given in their bodies' frames (CoM (k, 3), inertia about it (k, 3, 3)) moved to
+    the world: world CoM (k, 3) and world-aligned inertia R I Rᵀ (k, 3, 3)."""
+    R = R_body[bodies]
+    return p_body[bodies] + jnp.einsum("eij,ej->ei", R, com), R @ inertia @ jnp.swapaxes(R, 1, 2)
+
+
 def inertials_world(model, R_body, p_body):
     """World CoM (ne, 3) and world-aligned inertia about that CoM (ne, 3, 3) of each element."""
-    bodies = np.asarray(model.topology.inertial_body, int)
-    R = R_body[bodies]
-    com = p_body[bodies] + jnp.einsum("eij,ej->ei", R, model.inertial_com)
-    inertia = R @ model.inertial_inertia @ jnp.swapaxes(R, 1, 2)
-    return com, inertia
+    return _in_world(R_body, p_body, np.asarray(model.topology.inertial_body, int), model.inertial_com,
+                     model.inertial_inertia)
 
 
 def _body_composites(model):
@@ -48,8 +52,7 @@ def body_inertials_world(model, R_body, p_body):
     world-aligned inertia about it (nm, 3, 3) [kg m²], from the body poses (``body_poses``).
     The same total mass, first and second moments as ``inertials_world``'s elements."""
     bodies, mass, com, inertia = _body_composites(model)
-    R = R_body[bodies]
-    return bodies, mass, p_body[bodies] + jnp.einsum("eij,ej->ei", R, com), R @ inertia @ jnp.swapaxes(R, 1, 2)
+    return (bodies, mass) + _in_world(R_body, p_body, bodies, com, inertia)
 
 
 def com_position(model, q):
@@ -79,7 +82,7 @@ def _cmm_from_poses(model, q, R_body, p_body, composites):
     m = jnp.sum(mass)
     x = mass @ com / m
     r = com - x  # the bodies' CoMs relative to the robot CoM
-    # Inertia of each element about the robot CoM: I_e + m_e (|r|² I − r rᵀ).
+    # Inertia of each body about the robot CoM: I_b + m_b (|r|² I − r rᵀ).
     about_com = inertia + mass[:, None, None] * (
         jnp.sum(r * r, axis=1)[:, None, None] * jnp.eye(3) - r[:, :, None] * r[:, None, :]
     )
