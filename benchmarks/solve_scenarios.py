@@ -60,7 +60,8 @@ itself instead of at the pushed guess (``Options.slack_start``).
 by μ; IPOPT unchanged). --exact [SIGMA] solves, on both sides, ``tasks.exact_complementarity(task,
 SIGMA, SIGMA_T)`` (f_z c_z ≤ SIGMA [N m, default 1e-6], |f_z Δc| ≤ SIGMA_T [N m,
 --planar-tolerance, default ``tasks.PLANAR_TOLERANCE``], no slack) instead of the published NLP,
-ours through the homotopy (``programs.EXACT_RELAXATION``) unless --relaxation is given.
+ours with ``programs.EXACT_OPTIONS`` (the homotopy, μ halved per barrier problem), its κ_σ
+replaced where --relaxation is given.
 
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and
 IPOPT's ``max_iter``, for quick runs.
@@ -331,14 +332,14 @@ def main():
                              "per-iteration history)")
     parser.add_argument("--relaxation", type=float, default=None, metavar="K",
                         help="our solver with the relaxation homotopy, Options(relaxation=K) (default: off; "
-                             "programs.EXACT_RELAXATION with --exact)")
+                             "programs.EXACT_OPTIONS' with --exact)")
     parser.add_argument("--exact", type=float, nargs="?", const=1e-6, default=None, metavar="SIGMA",
                         help="both sides on tasks.exact_complementarity(task, SIGMA) (default SIGMA 1e-6 N m)")
     parser.add_argument("--planar-tolerance", type=float, default=tasks.PLANAR_TOLERANCE, metavar="SIGMA_T",
                         help="with --exact: the planar rows' σ_t [N m] (default tasks.PLANAR_TOLERANCE)")
     args = parser.parse_args()
     if args.relaxation is None:
-        args.relaxation = 0.0 if args.exact is None else programs.EXACT_RELAXATION
+        args.relaxation = 0.0 if args.exact is None else programs.EXACT_OPTIONS.relaxation
     if not (args.relaxation >= 0 and np.isfinite(args.relaxation)):
         parser.error(f"--relaxation must be a finite number ≥ 0, got {args.relaxation}")
     for flag, value in (("--exact", args.exact), ("--planar-tolerance", args.planar_tolerance)):
@@ -353,7 +354,8 @@ def main():
 
     run_scenarios = args.scenarios is not None or args.knots is None
     names = parse_names(parser, args.scenarios, default=list(tasks.SCENARIOS))
-    options = dataclasses.replace(solve.DEFAULT_OPTIONS, slack_start=args.slack_start, relaxation=args.relaxation)
+    base = solve.DEFAULT_OPTIONS if args.exact is None else programs.EXACT_OPTIONS
+    options = dataclasses.replace(base, slack_start=args.slack_start, relaxation=args.relaxation)
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     slack_names = names if args.ipopt_slacks == "all" else parse_names(parser, args.ipopt_slacks, default=[])

@@ -140,18 +140,18 @@ def scenario_task(args):
 
 
 def solver_options(args):
-    """The solver options of ``args`` (--max-iterations, --ipopt-slacks, --relaxation); with
-    --exact and no --relaxation, the homotopy's κ_σ = ``programs.EXACT_RELAXATION``."""
+    """The solver options of ``args`` (--max-iterations, --ipopt-slacks, --relaxation): from
+    ``programs.EXACT_OPTIONS`` with --exact (the homotopy and its barrier schedule; --relaxation
+    sets its κ_σ), from ``programs.DEFAULT_OPTIONS`` otherwise."""
     from jaxmm import programs
 
-    options = programs.DEFAULT_OPTIONS
+    exact = getattr(args, "exact", None) is not None
+    options = programs.EXACT_OPTIONS if exact else programs.DEFAULT_OPTIONS
     if args.max_iterations is not None:
         options = dataclasses.replace(options, max_iterations=args.max_iterations)
     if getattr(args, "ipopt_slacks", False):
         options = dataclasses.replace(options, ipopt_slacks=True)
     relaxation = getattr(args, "relaxation", None)
-    if relaxation is None and getattr(args, "exact", None) is not None:
-        relaxation = programs.EXACT_RELAXATION
     if relaxation is not None:
         options = dataclasses.replace(options, relaxation=relaxation)
     return options
@@ -349,7 +349,8 @@ def _scenario_arguments(parser):
     parser.add_argument("--exact", type=float, nargs="?", const=1e-6, metavar="SIGMA",
                         help="contact complementarity within SIGMA [N m, default 1e-6] and no slack instead of the "
                              "published relaxation (tasks.exact_complementarity), solved through the homotopy "
-                             "(--relaxation 1e-3 unless given)")
+                             "(--relaxation 1e-3 unless given) with μ halved per barrier problem "
+                             "(programs.EXACT_OPTIONS)")
     parser.add_argument("--planar-tolerance", type=float, metavar="SIGMA_T",
                         help="with --exact: the planar complementarity within SIGMA_T [N m, default 1e-3: a slip of "
                              "at most 10 µm per interval under 100 N]")

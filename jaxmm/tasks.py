@@ -249,9 +249,9 @@ def exact_complementarity(task, tolerance=1e-6, planar_tolerance=PLANAR_TOLERANC
 
     Its NLP has the published one's structure (σ and the slacks' bound are data), so one compiled
     solve serves both. From the published guess solve it with the relaxation homotopy
-    (``Options(relaxation=1e-3)``); warm-started from the published task's answer,
-    ``solve_task(exact_complementarity(task), warm_start=relaxed)``, it moves an optimum that buys
-    force on a corner in the air to a physical one nearby.
+    (``programs.EXACT_OPTIONS``: κ_σ = 1e-3, μ halved per barrier problem); warm-started from the
+    published task's answer, ``solve_task(exact_complementarity(task), warm_start=relaxed)``, it
+    moves an optimum that buys force on a corner in the air to a physical one nearby.
     """
     planar_tolerance = tolerance if planar_tolerance is None else planar_tolerance
     for label, value in (("tolerance", tolerance), ("planar_tolerance", planar_tolerance)):

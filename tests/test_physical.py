@@ -13,12 +13,11 @@ answer, moves it to a physical one; so does the elastic-mode continuation (``sol
 from the published guess.
 """
 
-import dataclasses
 
 import numpy as np
 import pytest
 
-from jaxmm import analysis, tasks
+from jaxmm import analysis, programs, tasks
 from jaxmm.transcription import costs
 from jaxmm.solve import DEFAULT_OPTIONS, solve_elastic, solve_task
 from jaxmm.solver import interior_point as ip
@@ -27,7 +26,8 @@ from conftest import REDUCED_TAKE_OFF
 
 UP = dict(REDUCED_TAKE_OFF, final_com=(0.0, 0.0, 0.95))
 SIGMA = 1e-6  # [N m]: at most 1e-4 N on a corner 1 cm up
-HOMOTOPY = dataclasses.replace(DEFAULT_OPTIONS, relaxation=1e-3)  # Scholtes' σ driven by μ (docs/solver.md)
+# The exact task's settings: Scholtes' σ driven by μ, μ halved per barrier problem (docs/solver.md)
+HOMOTOPY = programs.EXACT_OPTIONS
 _SOLVED = {}  # (name, overrides) → (task, TaskSolution): the published NLP solved once per case
 
 
@@ -85,8 +85,9 @@ def test_exact_complementarity_from_the_published_answer_is_physical():
 def test_the_relaxation_homotopy_finds_a_lower_exact_optimum_from_the_published_guess():
     """The exact task (f_z c_z ≤ σ_n, |f_z Δc| ≤ σ_t, no slack) of the take-off 38 cm up, from
     the published guess: without the relaxation homotopy it converges to a physical answer above
-    the one warm-started from the published optimum; with it (``Options.relaxation=1e-3``) it
-    converges on the same exact task at least 5 % lower (measured: 141 iterations, 5.4251e6):
+    the one warm-started from the published optimum; with it (``programs.EXACT_OPTIONS``) it
+    converges on the same exact task at least 5 % lower (measured: 123 iterations, 5.4251e6,
+    against 922 iterations, 5.8439e6):
     every product within its σ (to the solver's violation tolerance), slack-free and physical."""
     task = tasks.exact_complementarity(tasks.scenario("take_off", **UP), SIGMA)
     alone = solve_task(task)
@@ -151,9 +152,10 @@ def test_the_elastic_continuation_is_exact_and_physical_on_other_tasks(name, ove
 
 
 # The exact task of the same variants, each solved once from the published guess with the
-# homotopy, none tuned (with the take-off 38 cm up above, eight): measured with the tests' XLA
-# flags, 105 iterations sideways, 225 in the short horizon, 173 forward, 142 backward, 368 at 20
-# knots, 73 and 66 for the jumps (141 for 38 cm up); 1,152 in all against the continuation's 4,734.
+# homotopy (``programs.EXACT_OPTIONS``), none tuned (with the take-off 38 cm up above, eight):
+# measured with the tests' XLA flags, 111 iterations sideways, 270 in the short horizon, 185
+# forward, 139 backward, 304 at 20 knots, 68 and 58 for the jumps (123 for 38 cm up); 1,135 in all
+# against the continuation's 4,734.
 @pytest.mark.slow
 @pytest.mark.parametrize("name, overrides", VARIANTS)
 def test_the_relaxation_homotopy_solves_other_exact_tasks_to_physical_answers(name, overrides):
