@@ -332,7 +332,7 @@ def main():
                              "per-iteration history)")
     parser.add_argument("--relaxation", type=float, default=None, metavar="K",
                         help="our solver with the relaxation homotopy, Options(relaxation=K) (default: off; "
-                             "programs.EXACT_OPTIONS' with --exact)")
+                             "the κ_σ of programs.EXACT_OPTIONS with --exact)")
     parser.add_argument("--exact", type=float, nargs="?", const=1e-6, default=None, metavar="SIGMA",
                         help="both sides on tasks.exact_complementarity(task, SIGMA) (default SIGMA 1e-6 N m)")
     parser.add_argument("--planar-tolerance", type=float, default=tasks.PLANAR_TOLERANCE, metavar="SIGMA_T",

@@ -13,7 +13,6 @@ answer, moves it to a physical one; so does the elastic-mode continuation (``sol
 from the published guess.
 """
 
-
 import numpy as np
 import pytest
 
@@ -26,8 +25,6 @@ from conftest import REDUCED_TAKE_OFF
 
 UP = dict(REDUCED_TAKE_OFF, final_com=(0.0, 0.0, 0.95))
 SIGMA = 1e-6  # [N m]: at most 1e-4 N on a corner 1 cm up
-# The exact task's settings: Scholtes' σ driven by μ, μ halved per barrier problem (docs/solver.md)
-HOMOTOPY = programs.EXACT_OPTIONS
 _SOLVED = {}  # (name, overrides) → (task, TaskSolution): the published NLP solved once per case
 
 
@@ -92,7 +89,7 @@ def test_the_relaxation_homotopy_finds_a_lower_exact_optimum_from_the_published_
     task = tasks.exact_complementarity(tasks.scenario("take_off", **UP), SIGMA)
     alone = solve_task(task)
     assert alone.status is ip.Status.CONVERGED, alone.status.message
-    homotopy = solve_task(task, options=HOMOTOPY)
+    homotopy = solve_task(task, options=programs.EXACT_OPTIONS)
     _exact_answer_is_physical(task, homotopy)
     assert float(homotopy.solution.objective) <= 0.95 * float(alone.solution.objective)
 
@@ -160,7 +157,7 @@ def test_the_elastic_continuation_is_exact_and_physical_on_other_tasks(name, ove
 @pytest.mark.parametrize("name, overrides", VARIANTS)
 def test_the_relaxation_homotopy_solves_other_exact_tasks_to_physical_answers(name, overrides):
     task = tasks.exact_complementarity(tasks.scenario(name, **overrides), SIGMA)
-    _exact_answer_is_physical(task, solve_task(task, options=HOMOTOPY))
+    _exact_answer_is_physical(task, solve_task(task, options=programs.EXACT_OPTIONS))
 
 
 def test_the_smooth_start_hands_the_squared_answer_to_the_published_penalty():
