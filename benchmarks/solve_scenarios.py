@@ -60,7 +60,7 @@ itself instead of at the pushed guess (``Options.slack_start``).
 by μ; IPOPT unchanged). --exact [SIGMA] solves, on both sides, ``tasks.exact_complementarity(task,
 SIGMA, SIGMA_T)`` (f_z c_z ≤ SIGMA [N m, default 1e-6], |f_z Δc| ≤ SIGMA_T [N m,
 --planar-tolerance, default ``tasks.PLANAR_TOLERANCE``], no slack) instead of the published NLP,
-ours with ``programs.EXACT_OPTIONS`` (the homotopy, μ halved per barrier problem), its κ_σ
+ours with ``programs.EXACT_OPTIONS`` (the homotopy, μ × 0.7 per barrier problem), its κ_σ
 replaced where --relaxation is given.
 
 --max-iterations caps the iterations of our solver (``Options.max_iterations``) and

@@ -349,7 +349,7 @@ def _scenario_arguments(parser):
     parser.add_argument("--exact", type=float, nargs="?", const=1e-6, metavar="SIGMA",
                         help="contact complementarity within SIGMA [N m, default 1e-6] and no slack instead of the "
                              "published relaxation (tasks.exact_complementarity), solved through the homotopy "
-                             "(--relaxation 1e-3 unless given) with μ halved per barrier problem "
+                             "(--relaxation 1e-3 unless given) with μ × 0.7 per barrier problem "
                              "(programs.EXACT_OPTIONS)")
     parser.add_argument("--planar-tolerance", type=float, metavar="SIGMA_T",
                         help="with --exact: the planar complementarity within SIGMA_T [N m, default 1e-3: a slip of "

@@ -249,7 +249,7 @@ def exact_complementarity(task, tolerance=1e-6, planar_tolerance=PLANAR_TOLERANC
 
     Its NLP has the published one's structure (σ and the slacks' bound are data), so one compiled
     solve serves both. From the published guess solve it with the relaxation homotopy
-    (``programs.EXACT_OPTIONS``: κ_σ = 1e-3, μ halved per barrier problem); warm-started from the
+    (``programs.EXACT_OPTIONS``: κ_σ = 1e-3, μ × 0.7 per barrier problem); warm-started from the
     published task's answer, ``solve_task(exact_complementarity(task), warm_start=relaxed)``, it
     moves an optimum that buys force on a corner in the air to a physical one nearby.
     """

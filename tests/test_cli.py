@@ -175,11 +175,11 @@ def test_relaxation_sets_the_solver_option_and_a_negative_one_is_a_usage_error(c
 
     args = argparse.Namespace(max_iterations=None, ipopt_slacks=False, relaxation=2e-3)
     assert cli.solver_options(args) == dataclasses.replace(programs.DEFAULT_OPTIONS, relaxation=2e-3)
-    # --exact solves with the exact task's settings (the homotopy, μ halved per barrier problem);
+    # --exact solves with the exact task's settings (the homotopy, μ × 0.7 per barrier problem);
     # --relaxation replaces their κ_σ (0: off)
     exact = argparse.Namespace(**{**vars(args), "relaxation": None, "exact": 1e-6})
     assert cli.solver_options(exact) == programs.EXACT_OPTIONS and programs.EXACT_OPTIONS.relaxation > 0
-    assert programs.EXACT_OPTIONS.barrier_factor == 0.5 and programs.EXACT_OPTIONS.barrier_power == 1.0
+    assert programs.EXACT_OPTIONS.barrier_factor == 0.7 and programs.EXACT_OPTIONS.barrier_power == 1.0
     assert cli.solver_options(argparse.Namespace(**{**vars(exact), "relaxation": 0.0})) == dataclasses.replace(
         programs.EXACT_OPTIONS, relaxation=0.0)
     assert cli.solver_options(argparse.Namespace(**{**vars(exact), "exact": None})) == programs.DEFAULT_OPTIONS

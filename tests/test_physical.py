@@ -83,7 +83,7 @@ def test_the_relaxation_homotopy_finds_a_lower_exact_optimum_from_the_published_
     """The exact task (f_z c_z ≤ σ_n, |f_z Δc| ≤ σ_t, no slack) of the take-off 38 cm up, from
     the published guess: without the relaxation homotopy it converges to a physical answer above
     the one warm-started from the published optimum; with it (``programs.EXACT_OPTIONS``) it
-    converges on the same exact task at least 5 % lower (measured: 123 iterations, 5.4251e6,
+    converges on the same exact task at least 5 % lower (measured: 114 iterations, 5.4251e6,
     against 922 iterations, 5.8439e6):
     every product within its σ (to the solver's violation tolerance), slack-free and physical."""
     task = tasks.exact_complementarity(tasks.scenario("take_off", **UP), SIGMA)
@@ -150,8 +150,8 @@ def test_the_elastic_continuation_is_exact_and_physical_on_other_tasks(name, ove
 
 # The exact task of the same variants, each solved once from the published guess with the
 # homotopy (``programs.EXACT_OPTIONS``), none tuned (with the take-off 38 cm up above, eight):
-# measured with the tests' XLA flags, 111 iterations sideways, 270 in the short horizon, 185
-# forward, 139 backward, 304 at 20 knots, 68 and 58 for the jumps (123 for 38 cm up); 1,135 in all
+# measured with the tests' XLA flags, 110 iterations sideways, 251 in the short horizon, 187
+# forward, 220 backward, 301 at 20 knots, 74 and 67 for the jumps (114 for 38 cm up); 1,210 in all
 # against the continuation's 4,734.
 @pytest.mark.slow
 @pytest.mark.parametrize("name, overrides", VARIANTS)
