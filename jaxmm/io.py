@@ -1,6 +1,6 @@
 """Saved solutions: a solved task written to one ``.npz`` file with a JSON header, and read back.
 
-The file (format ``jaxmm-solution``, version 7) holds NumPy arrays only (no pickles) and one
+The file (format ``jaxmm-solution``, version 8) holds NumPy arrays only (no pickles) and one
 JSON header ``__header__``:
 
 * ``format``, ``version``, ``jaxmm_version``, ``saved_at`` (UTC, ISO 8601);
@@ -22,7 +22,9 @@ parameters) solved the published relaxation: σ = 0, ε_max = ∞. Files before 
 the squared slack penalty was a weight) name their penalty in the task's ``slack_penalty``; it
 becomes the weights ``complementarity_slack`` and ``complementarity_slack_squared``. Files
 before version 7 (before the planar rows had a σ_t of their own) bounded them by σ_n: their
-``planar_tolerance`` is their ``complementarity_tolerance``.
+``planar_tolerance`` is their ``complementarity_tolerance``. Files before version 8 (before
+the relaxation homotopy's share on the planar rows was a task parameter) widened both rows alike:
+their ``planar_relaxation`` is 1.
 
 Arrays are named by their path in the skeleton (``trajectory.knots.com``). Files are written
 atomically: a temporary file in the same directory, renamed over the target once complete.
@@ -47,12 +49,12 @@ from jaxmm.transcription.problem import Task, TaskParams, Weights
 from jaxmm.transcription.variables import Knot, Trajectory
 
 FORMAT = "jaxmm-solution"
-VERSION = 7
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
+VERSION = 8
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8)
 # The task parameters added by a version, with the value every older file solved with: a number,
 # or the name of the older parameter that it was (the planar rows' σ_t was the normal rows' σ_n).
 _ADDED_PARAMS = {5: dict(complementarity_tolerance=0.0, slack_limit=float("inf")),
-                 7: dict(planar_tolerance="complementarity_tolerance")}
+                 7: dict(planar_tolerance="complementarity_tolerance"), 8: dict(planar_relaxation=1.0)}
 HEADER = "__header__"
 _CLASSES = {cls.__name__: cls for cls in (Trajectory, Knot, ip.Solution, ip.Multipliers, TaskParams, Weights)}
 

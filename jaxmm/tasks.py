@@ -132,6 +132,7 @@ def build_task(
     complementarity_tolerance=0.0,
     planar_tolerance=None,
     slack_limit=np.inf,
+    planar_relaxation=1.0,
     zero_initial_thrust=True,
     integration="trapezoidal",
     slack_penalty="linear",
@@ -145,7 +146,8 @@ def build_task(
     has jets. joint_limits (n, 2) [rad] default to the URDF limits. upper_body_joints: names.
     complementarity_tolerance, planar_tolerance, slack_limit: the normal and planar
     complementarity rows' σ_n, σ_t and the slacks' bound (``TaskParams``; σ_t None: σ_n; the
-    defaults are the published relaxation). slack_penalty: "linear"
+    defaults are the published relaxation). planar_relaxation: κ_t, the relaxation homotopy's
+    share of σ on the planar rows (``TaskParams``). slack_penalty: "linear"
     (published) or "squared" (``with_slack_penalty``). joint_torque_limits: bound every
     joint torque by the URDF's effort limit (``Task.joint_torque_limits``; off in the paper's NLP).
     Raises ValueError naming the problem for inconsistent input.
@@ -168,7 +170,7 @@ def build_task(
                         base_angular_velocity_limit=base_angular_velocity_limit, com_xy_limit=com_xy_limit),
                    dict(boundary_tolerance=boundary_tolerance, final_orientation_tolerance=final_orientation_tolerance,
                         complementarity_tolerance=complementarity_tolerance,
-                        planar_tolerance=planar_tolerance),
+                        planar_tolerance=planar_tolerance, planar_relaxation=planar_relaxation),
                    slack_limit, mid_com_height)
     throttle = _vector(throttle_range, 2, "throttle_range")
     if not throttle[0] <= throttle[1]:
@@ -203,6 +205,7 @@ def build_task(
         complementarity_tolerance=jnp.asarray(float(complementarity_tolerance)),
         planar_tolerance=jnp.asarray(float(planar_tolerance)),
         slack_limit=jnp.asarray(float(slack_limit)),
+        planar_relaxation=jnp.asarray(float(planar_relaxation)),
     )
     task = Task(
         robot=robot,

@@ -107,6 +107,23 @@ def test_a_file_before_version_7_bounds_the_planar_rows_by_its_normal_sigma(save
     _leaves_equal(loaded.params, exact.params)
 
 
+def test_a_file_before_version_8_widened_both_complementarity_rows_alike(saved, tmp_path):
+    """Files written before the relaxation homotopy's share on the planar rows was a task
+    parameter load with ``planar_relaxation`` = 1, which is what they solved."""
+    path, task, result = saved
+    shared = dataclasses.replace(task, params=dataclasses.replace(task.params, planar_relaxation=jax.numpy.asarray(0.1)))
+    io.save(tmp_path / "shared.npz", shared, result)
+
+    def as_version_7(arrays):
+        content = json.loads(str(arrays["__header__"]))
+        del arrays[content["task"]["params"]["fields"].pop("planar_relaxation")["array"]]
+        arrays["__header__"] = np.array(json.dumps({**content, "version": 7}))
+
+    loaded, _ = io.load(_rewrite(tmp_path / "shared.npz", tmp_path / "version_7.npz", as_version_7))
+    assert float(loaded.params.planar_relaxation) == 1.0
+    _leaves_equal(loaded.params, task.params)
+
+
 @pytest.mark.parametrize("penalty", ["linear", "squared"])
 def test_a_file_before_version_6_keeps_its_slack_penalty(saved, tmp_path, penalty):
     """Files written while the slack penalty was a static option (the task's ``slack_penalty``,

@@ -251,6 +251,7 @@ def test_every_unbounded_variable_enters_the_cost_or_a_constraint(name):
     (dict(complementarity_tolerance=-1e-6), "complementarity_tolerance must be a finite non-negative number"),
     (dict(planar_tolerance=float("nan")), "planar_tolerance must be a finite non-negative number"),
     (dict(slack_limit=-1.0), "slack_limit must be a non-negative number"),
+    (dict(planar_relaxation=-0.1), "planar_relaxation must be a finite non-negative number"),
 ])
 def test_bad_task_input(kwargs, message):
     knots = kwargs.pop("knots", 10)
@@ -287,18 +288,20 @@ def test_exact_complementarity_bounds_the_products_by_sigma_and_fixes_the_slacks
             tasks.exact_complementarity(task, *args)
 
 
-def test_the_complementarity_rows_alone_are_marked_for_the_relaxation_homotopy():
+@pytest.mark.parametrize("share", [1.0, 0.1])
+def test_the_complementarity_rows_alone_are_marked_for_the_relaxation_homotopy(share):
     """``Options.relaxation`` widens the bounds that the NLP marks: the normal rows' upper bound
-    (+1), the planar rows' upper bounds (+1) and their lower bounds (−1), nothing else (the
-    joint torques' rows included)."""
-    task = scenario("take_off", knots=2, joint_torque_limits=True)
+    (+1), the planar rows' upper bounds (+κ_t) and their lower bounds (−κ_t), κ_t the task's
+    ``planar_relaxation`` (default 1), nothing else (the joint torques' rows included)."""
+    task = scenario("take_off", knots=2, joint_torque_limits=True, planar_relaxation=share)
     nlp = transcription.stagewise_nlp(task)
     nc = len(task.robot.contact_frames)
     for group, marks in (("path_inequality", nlp.path_relaxation), ("transition_inequality", nlp.transition_relaxation)):
         offset = 0
         for name, size in transcription.family_rows(task)[group]:
             expected = dict(normal_complementarity=np.ones(nc),
-                            planar_complementarity=np.r_[np.ones(2 * nc), -np.ones(2 * nc)]).get(name, np.zeros(size))
+                            planar_complementarity=share * np.r_[np.ones(2 * nc), -np.ones(2 * nc)]).get(
+                name, np.zeros(size))
             np.testing.assert_array_equal(np.asarray(marks[offset:offset + size]), expected, err_msg=name)
             offset += size
         assert offset == marks.shape[0]

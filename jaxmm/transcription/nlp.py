@@ -341,11 +341,13 @@ FUNCTIONS = StagewiseFunctions(
 )
 
 
-def _relaxation(bounds, names):
+def _relaxation(bounds, names, planar_share):
     """Per row of the families ``names`` (their ``bounds``): the bound that the solver's
-    relaxation homotopy widens, +1 the upper, −1 the lower, on the complementarity rows of eq.
-    (20, 21) only (Scholtes' relaxation, f_z c_z ≤ ε_n + σ); 0 elsewhere."""
-    signs = [jnp.where(jnp.isfinite(bounds[name][1]), 1.0, -1.0) if name in constraints.COMPLEMENTARITY
+    relaxation homotopy widens and by how much of σ, +1 the upper, −1 the lower, on the
+    complementarity rows of eq. (20, 21) only (Scholtes' relaxation, f_z c_z ≤ ε_n + σ), times
+    ``planar_share`` (κ_t, ``TaskParams.planar_relaxation``) on the planar rows; 0 elsewhere."""
+    share = dict(zip(constraints.COMPLEMENTARITY, (1.0, planar_share)))
+    signs = [share[name] * jnp.where(jnp.isfinite(bounds[name][1]), 1.0, -1.0) if name in share
              else jnp.zeros_like(bounds[name][1]) for name in names]
     return jnp.concatenate(signs)
 
@@ -371,8 +373,8 @@ def stagewise_nlp(task):
         transition_lower=jnp.concatenate([b[0] for b in transition]),
         transition_upper=jnp.concatenate([b[1] for b in transition]),
         functions=FUNCTIONS,
-        path_relaxation=_relaxation(bounds, constraints.PATH_INEQUALITIES),
-        transition_relaxation=_relaxation(bounds, transition_families),
+        path_relaxation=_relaxation(bounds, constraints.PATH_INEQUALITIES, task.params.planar_relaxation),
+        transition_relaxation=_relaxation(bounds, transition_families, task.params.planar_relaxation),
     )
 
 

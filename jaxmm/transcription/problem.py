@@ -97,7 +97,10 @@ class TaskParams:
     |f_z Δc − ε_t| ≤ σ_t with 0 ≤ ε ≤ ε_max (eq. 20, 21): the published relaxation is σ = 0,
     ε_max = ∞ (slacks paid for in the cost); σ > 0, ε_max = 0 is Scholtes' relaxation without
     slacks (``tasks.exact_complementarity``). σ_n bounds the force of a corner above the ground
-    (σ_n / c_z [N]), σ_t its slip per interval under load (σ_t / f_z [m]).
+    (σ_n / c_z [N]), σ_t its slip per interval under load (σ_t / f_z [m]). planar_relaxation: ()
+    κ_t ≥ 0: where the solver's relaxation homotopy (``Options.relaxation``) widens the normal
+    rows by σ(μ), it widens the planar rows by κ_t σ(μ) (1: alike; < 1: a loaded foot slides
+    less while σ is large).
     """
 
     initial_com: jax.Array
@@ -123,6 +126,7 @@ class TaskParams:
     complementarity_tolerance: jax.Array
     planar_tolerance: jax.Array
     slack_limit: jax.Array
+    planar_relaxation: jax.Array
 
 
 @jax.tree_util.register_dataclass
