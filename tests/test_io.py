@@ -90,19 +90,25 @@ def test_a_file_before_version_5_solved_the_published_complementarity(saved, tmp
     _leaves_equal(loaded.params, task.params)
 
 
+def _without_param(saved_task, result, tmp_path, name, version):
+    """``saved_task`` with ``result`` saved, then rewritten as a file of ``version`` that lacks
+    the task parameter ``name``, and loaded: the loaded task."""
+    io.save(tmp_path / "new.npz", saved_task, result)
+
+    def as_older(arrays):
+        content = json.loads(str(arrays["__header__"]))
+        del arrays[content["task"]["params"]["fields"].pop(name)["array"]]
+        arrays["__header__"] = np.array(json.dumps({**content, "version": version}))
+
+    return io.load(_rewrite(tmp_path / "new.npz", tmp_path / f"version_{version}.npz", as_older))[0]
+
+
 def test_a_file_before_version_7_bounds_the_planar_rows_by_its_normal_sigma(saved, tmp_path):
     """Files written while one σ bounded both complementarity rows (eq. 20, 21) load with the
     planar rows' σ_t equal to that σ, which is what they solved."""
-    path, task, result = saved
+    _, task, result = saved
     exact = tasks.exact_complementarity(task, 2e-6, None)
-    io.save(tmp_path / "exact.npz", exact, result)
-
-    def as_version_6(arrays):
-        content = json.loads(str(arrays["__header__"]))
-        del arrays[content["task"]["params"]["fields"].pop("planar_tolerance")["array"]]
-        arrays["__header__"] = np.array(json.dumps({**content, "version": 6}))
-
-    loaded, _ = io.load(_rewrite(tmp_path / "exact.npz", tmp_path / "version_6.npz", as_version_6))
+    loaded = _without_param(exact, result, tmp_path, "planar_tolerance", 6)
     assert float(loaded.params.planar_tolerance) == 2e-6
     _leaves_equal(loaded.params, exact.params)
 
@@ -110,16 +116,9 @@ def test_a_file_before_version_7_bounds_the_planar_rows_by_its_normal_sigma(save
 def test_a_file_before_version_8_widened_both_complementarity_rows_alike(saved, tmp_path):
     """Files written before the relaxation homotopy's share on the planar rows was a task
     parameter load with ``planar_relaxation`` = 1, which is what they solved."""
-    path, task, result = saved
+    _, task, result = saved
     shared = dataclasses.replace(task, params=dataclasses.replace(task.params, planar_relaxation=jax.numpy.asarray(0.1)))
-    io.save(tmp_path / "shared.npz", shared, result)
-
-    def as_version_7(arrays):
-        content = json.loads(str(arrays["__header__"]))
-        del arrays[content["task"]["params"]["fields"].pop("planar_relaxation")["array"]]
-        arrays["__header__"] = np.array(json.dumps({**content, "version": 7}))
-
-    loaded, _ = io.load(_rewrite(tmp_path / "shared.npz", tmp_path / "version_7.npz", as_version_7))
+    loaded = _without_param(shared, result, tmp_path, "planar_relaxation", 7)
     assert float(loaded.params.planar_relaxation) == 1.0
     _leaves_equal(loaded.params, task.params)
 
