@@ -128,10 +128,10 @@ def test_reduced_jumping_converges_and_passes_validate(jumping):
 
 def test_ipopt_from_the_same_guess_finds_no_jump_lower_by_more_than_2e_3(jumping, tmp_path):
     """Ours converges to another local optimum of the relaxed complementarity than the feasible
-    point where IPOPT stops (``Error_In_Step_Computation``), which is lower
-    by a margin that depends on the machine's floating point: ours 6.2532e5–6.2542e5 against
-    IPOPT's 6.24501e5 (Intel Xeon, 1.3e-3 lower) and 6.25041e5 (AMD EPYC, 4.6e-4 lower). The
-    comparison is the take-off's with 2e-3 for 1e-3."""
+    point where IPOPT stops (``Error_In_Step_Computation``), which is lower by a margin that
+    depends on the machine's floating point: ours 6.2532e5–6.2542e5 against IPOPT's 6.24501e5
+    (Intel Xeon, 1.3e-3 lower) and 6.25041e5 (AMD EPYC, 4.6e-4 lower). The comparison is the
+    take-off's with 2e-3 for 1e-3."""
     _cross_check(*jumping, tmp_path, comparable=2e-3)
 
 
