@@ -153,6 +153,42 @@ def random_configurations(model, count, seed):
     )
 
 
+def assert_kinematics_derivatives_equal_autodiff(model, frames, configurations, seed):
+    """``centroidal_derivatives.centroidal_kinematics_derivatives`` (the tree recursions) against
+    the plain kinematics differentiated by JAX: the kinematics, their Jacobian (``jax.jacfwd``, and
+    through ``centroidal_kinematics``' own forward-mode rule) and the curvature of a random weighted
+    sum (``jax.hessian``), at each configuration. The kinematics are affine in the base position,
+    whose rows and columns of the curvature are zero."""
+    from jaxmm.rigid_body import centroidal_derivatives
+
+    indices = np.asarray(model.frame_indices(frames), int)
+
+    def bundle(q):  # the same quantities from the public, separately differentiated functions
+        positions, rotations = jaxmm.frame_poses(model, q)
+        return dict(com=jaxmm.com_position(model, q), cmm=jaxmm.centroidal_momentum_matrix(model, q),
+                    frame_positions=positions[indices], frame_rotations=rotations[indices])
+
+    rng = np.random.default_rng(seed)
+    weights = jax.tree.map(lambda s: jax.numpy.asarray(rng.normal(size=s.shape)),
+                           jax.eval_shape(bundle, configurations[0]))
+
+    def weighted(q):
+        out = bundle(q)
+        return sum(jax.numpy.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out)))
+
+    fused = jax.jit(lambda q: centroidal_derivatives.centroidal_kinematics_derivatives(model, q, frames, weights))
+    plain = jax.jit(lambda q: (bundle(q), jax.jacfwd(bundle)(q), jax.hessian(weighted)(q)))
+    through_rule = jax.jit(jax.jacfwd(lambda q: centroidal_derivatives.centroidal_kinematics(model, q, frames)))
+    for q in configurations:
+        (kinematics, jacobian, curvature), (kinematics_ref, jacobian_ref, hessian) = fused(q), plain(q)
+        for a, b in zip(jax.tree.leaves((kinematics, jacobian, through_rule(q))),
+                        jax.tree.leaves((kinematics_ref, jacobian_ref, jacobian_ref))):
+            assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * max(1.0, np.abs(b).max())
+        assert np.abs(curvature - hessian).max() <= 1e-11 * np.abs(hessian).max()
+        assert np.abs(curvature[:3]).max() == 0.0 and np.abs(curvature[:, :3]).max() == 0.0
+        assert np.abs(hessian[:3]).max() <= 1e-10 * np.abs(hessian).max()  # affine in the base position
+
+
 def _ironcub_real():
     default = jaxmm.load_ironcub()
     model = jaxmm.model_from_urdf(

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxmm
-from conftest import PinocchioTwin, random_configurations
+from conftest import PinocchioTwin, assert_kinematics_derivatives_equal_autodiff, random_configurations
 
 
 def _link(name, mass, com, rpy):
@@ -94,6 +94,15 @@ def test_against_pinocchio(tree):
         assert np.abs(pin.computeCentroidalMap(twin.model, twin.data, q_pin) @ v_pin - h[i]).max() <= 1e-10
         J = pin.computeFrameJacobian(twin.model, twin.data, q_pin, twin.frame_id("tip"), pin.LOCAL_WORLD_ALIGNED)
         assert np.abs(J @ v_pin - tip_jacobian[i] @ nu).max() <= 1e-10
+
+
+def test_kinematics_derivatives_by_the_tree_recursions_equal_autodiff(tree):
+    """The tree recursions' Jacobian and curvature on a tree with two branches, a prismatic and a
+    locked joint, a massless frame, and optimised joints listed out of the tree's order."""
+    model, _ = tree
+    configurations = random_configurations(model, 3, seed=13)
+    assert_kinematics_derivatives_equal_autodiff(model, ("tip", "wheel", "locked_link", "slider", "trunk"),
+                                                 configurations, seed=14)
 
 
 # A small legged robot that is not an iCub: a trunk and two legs, with feet but no sole corners

@@ -10,7 +10,7 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxmm
-from conftest import random_configurations
+from conftest import assert_kinematics_derivatives_equal_autodiff, random_configurations
 
 FRAMES = ("l_sole_1", "l_sole_2", "l_sole_3", "l_sole_4", "r_sole_1", "r_sole_2", "r_sole_3", "r_sole_4",
           "l_arm_jet_turbine", "r_arm_jet_turbine", "chest_l_jet_turbine", "chest_r_jet_turbine")
@@ -149,39 +149,10 @@ def test_gradients_of_kinematics_and_cmm(model, configurations):
     check_grads(jax.jit(lambda q: jaxmm.centroidal_momentum(model, q, nu)), (q,), order=1, modes=["fwd", "rev"])
 
 
-def test_kinematics_derivatives_in_one_pass_equal_autodiff(model, configurations):
-    """``centroidal_kinematics_derivatives`` (Jacobian and weighted curvature from one pass) gives
-    the kinematics, ``jax.jacfwd`` of them and ``jax.hessian`` of their weighted sum (each through
-    the plain kinematics); the kinematics are affine in the base position, whose tangents are left out."""
-    from jaxmm.rigid_body import centroidal
-
-    indices = np.asarray(model.frame_indices(FRAMES), int)
-
-    def bundle(q):  # the same quantities from the public, separately differentiated functions
-        positions, rotations = jaxmm.frame_poses(model, q)
-        return dict(com=jaxmm.com_position(model, q), cmm=jaxmm.centroidal_momentum_matrix(model, q),
-                    frame_positions=positions[indices], frame_rotations=rotations[indices])
-
-    rng = np.random.default_rng(6)
-    shapes = jax.eval_shape(bundle, configurations[0])
-    weights = jax.tree.map(lambda s: jnp.asarray(rng.normal(size=s.shape)), shapes)
-
-    def weighted(q):
-        out = bundle(q)
-        return sum(jnp.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out)))
-
-    fused = jax.jit(lambda q: centroidal.centroidal_kinematics_derivatives(model, q, FRAMES, weights))
-    plain = jax.jit(lambda q: (bundle(q), jax.jacfwd(bundle)(q), jax.hessian(weighted)(q)))
-    # centroidal_kinematics' own forward-mode rule (its Jacobian, then products with the tangents)
-    through_rule = jax.jit(jax.jacfwd(lambda q: centroidal.centroidal_kinematics(model, q, FRAMES)))
-    for q in configurations[:3]:
-        (kinematics, jacobian, curvature), (kinematics_ref, jacobian_ref, hessian) = fused(q), plain(q)
-        for a, b in zip(jax.tree.leaves((kinematics, jacobian, through_rule(q))),
-                        jax.tree.leaves((kinematics_ref, jacobian_ref, jacobian_ref))):
-            assert a.shape == b.shape and np.abs(a - b).max() <= 1e-12 * max(1.0, np.abs(b).max())
-        assert np.abs(curvature - hessian).max() <= 1e-11 * np.abs(hessian).max()
-        assert np.abs(curvature[:3, :3]).max() == 0.0  # no tangent of the base position is taken
-        assert np.abs(hessian[:3]).max() <= 1e-10 * np.abs(hessian).max()  # affine in the base position
+def test_kinematics_derivatives_by_the_tree_recursions_equal_autodiff(model, configurations):
+    """``centroidal_kinematics_derivatives`` (the tree recursions) gives the kinematics, ``jax.jacfwd``
+    of them and ``jax.hessian`` of their weighted sum, each through the plain kinematics, on iRonCub."""
+    assert_kinematics_derivatives_equal_autodiff(model, FRAMES, configurations[:3], seed=6)
 
 
 def test_gradients_with_respect_to_model_parameters(model, configurations):

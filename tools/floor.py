@@ -12,7 +12,7 @@ this machine, and what a second CPU device adds to one solve.
 4. ``--devices``: one program on two CPU devices (a subprocess with
    ``--xla_force_host_platform_device_count=2``, which must be set before JAX starts): the
    heaviest knot-parallel derivative, the kinematics' Jacobian and weighted curvature
-   (``centroidal.centroidal_kinematics_derivatives``) at every knot of the published guess, and
+   (``centroidal_derivatives.centroidal_kinematics_derivatives``) at every knot of the published guess, and
    two independent half-length systems factored, each once on one device and once split
    across the two (``jax.shard_map``). XLA's CPU runtime runs the independent loops of one
    device's program one after the other (measured: two factorisation chains take twice one),
@@ -183,7 +183,7 @@ def parallel_work(task, mesh=None):
     from jax.sharding import NamedSharding
     from jax.sharding import PartitionSpec as P
 
-    from jaxmm.rigid_body import centroidal
+    from jaxmm.rigid_body import centroidal_derivatives as centroidal
     from jaxmm import tasks
     from jaxmm.solver import linalg
 

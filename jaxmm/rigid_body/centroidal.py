@@ -1,14 +1,10 @@
 """Total mass, centre of mass and the centroidal momentum matrix (eq. 4, 15, 16)."""
 
-import functools
-
-import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.custom_derivatives import SymbolicZero
 
 from jaxmm.rigid_body import so3
-from jaxmm.rigid_body.configuration import check_configuration, check_velocity
+from jaxmm.rigid_body.configuration import check_velocity
 from jaxmm.rigid_body.kinematics import body_poses, joint_axes_world
 
 
@@ -111,9 +107,12 @@ def _cmm_from_poses(model, q, R_body, p_body, composites):
     return jnp.concatenate([base_linear, base_angular, joints], axis=1)
 
 
-def _bundle(model, q, frames):
-    R_body, p_body = body_poses(model, q)
-    composites = body_inertials_world(model, R_body, p_body)
+def bundle_from_poses(model, q, R_body, p_body, frames, composites=None):
+    """The centroidal transcription's kinematics at q from the body poses (``body_poses``):
+    {com (3,), cmm (6, 6 + n), frame_positions (k, 3), frame_rotations (k, 3, 3)} for frames
+    (indices, static), as ``com_position``, ``centroidal_momentum_matrix`` and ``frame_poses``
+    give them. composites: ``body_inertials_world`` at these poses, if already known."""
+    composites = body_inertials_world(model, R_body, p_body) if composites is None else composites
     _, mass, com, _ = composites
     bodies = np.asarray(model.topology.frame_body, int)[list(frames)]
     indices = np.asarray(frames, int)
@@ -125,134 +124,6 @@ def _bundle(model, q, frames):
         frame_positions=positions,
         frame_rotations=rotations,
     )
-
-
-def _directional_derivatives(fn, q, directions):
-    """jvp of fn at q along each row of directions (d, 7 + n), stacked on a leading axis.
-
-    fn is linearised once (``jax.linearize``: its primal pass is not repeated per direction),
-    then applied one direction at a time (``lax.map``): on a CPU, XLA ran the directions
-    batched (``jax.jacfwd``, ``jax.hessian``) 1.3–2.3× slower for 71 iRonCub knots."""
-    _, linear = jax.linearize(fn, q)
-    return jax.lax.map(linear, directions)
-
-
-def _with_position_columns(columns, q):
-    """The bundle's Jacobian (each output with a trailing (7 + n) axis) from its columns along the
-    orientation and joints (``_directional_derivatives`` over q[3:], stacked on a leading axis),
-    with the base position's three columns written in: the base position translates every body,
-    so the CoM and frame positions move with it one to one, and the CMM (eq. 4: it depends on
-    the bodies' positions relative to the CoM) and the rotations do not move."""
-    def joined(c, position):
-        return jnp.concatenate([position, jnp.moveaxis(c, 0, -1)], axis=-1)
-
-    eye = jnp.eye(3, dtype=q.dtype)
-    return dict(
-        com=joined(columns["com"], eye),
-        cmm=joined(columns["cmm"], jnp.zeros(columns["cmm"].shape[1:] + (3,), q.dtype)),
-        frame_positions=joined(columns["frame_positions"],
-                               jnp.broadcast_to(eye, columns["frame_positions"].shape[1:] + (3,))),
-        frame_rotations=joined(columns["frame_rotations"],
-                               jnp.zeros(columns["frame_rotations"].shape[1:] + (3,), q.dtype)),
-    )
-
-
-def _orientation_and_joint_directions(q):
-    """The unit directions of q's orientation and joint entries, (4 + n, 7 + n): the tangents
-    that the kinematics' derivatives push through (the base position's columns are known)."""
-    return jnp.eye(q.shape[0], dtype=q.dtype)[3:]
-
-
-def _jacobian(model, q, frames):
-    """∂_bundle/∂q, each output with a trailing (7 + n) axis."""
-    columns = _directional_derivatives(lambda q: _bundle(model, q, frames), q, _orientation_and_joint_directions(q))
-    return _with_position_columns(columns, q)
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def _fast_bundle(model, q, frames):
-    return _bundle(model, q, frames)
-
-
-def _fast_bundle_jvp(frames, primals, tangents):
-    model, q = primals
-    model_dot, q_dot = tangents
-    out = _bundle(model, q, frames)
-    tangent = jax.tree.map(jnp.zeros_like, out)
-    if not isinstance(q_dot, SymbolicZero):
-        # One Jacobian with n_q tangents, then a product: cheap for many input tangents.
-        jacobian = _jacobian(model, q, frames)
-        tangent = jax.tree.map(lambda t, J: t + J @ q_dot, tangent, jacobian)
-    model_leaves = jax.tree.leaves(model_dot, is_leaf=lambda x: isinstance(x, SymbolicZero))
-    if any(not isinstance(leaf, SymbolicZero) for leaf in model_leaves):
-        model_dot = jax.tree.map(
-            lambda t, m: jnp.zeros_like(m) if isinstance(t, SymbolicZero) else t,
-            model_dot, model, is_leaf=lambda x: isinstance(x, SymbolicZero),
-        )
-        _, model_tangent = jax.jvp(lambda m: _bundle(m, q, frames), (model,), (model_dot,))
-        tangent = jax.tree.map(jnp.add, tangent, model_tangent)
-    return out, tangent
-
-
-_fast_bundle.defjvp(_fast_bundle_jvp, symbolic_zeros=True)
-
-
-def centroidal_kinematics(model, q, frames):
-    """Everything the centroidal transcription needs at q, from one kinematics pass.
-
-    frames: names or indices (static). Returns {com (3,), cmm (6, 6 + n), frame_positions
-    (k, 3), frame_rotations (k, 3, 3)}, as ``com_position``, ``centroidal_momentum_matrix``
-    and ``frame_poses`` would. Its forward-mode derivative computes the (7 + n)-column
-    Jacobian once and applies it to every tangent, so ``jax.jacfwd`` over many variables that
-    include q costs about as much as over q alone.
-    """
-    q = check_configuration(model, q)
-    return _fast_bundle(model, q, model.frame_indices(frames))
-
-
-def centroidal_kinematics_curvature(model, q, frames, weights):
-    """Σ_a w_a ∇²_q κ_a(q): the second derivative of the weighted ``centroidal_kinematics``
-    outputs κ (weights: a pytree of the same shapes) w.r.t. q, (7 + n, 7 + n).
-
-    Forward-over-reverse through the plain kinematics, one Hessian column per tangent of the
-    orientation and joints (6 + n): every output is affine in the base position (positions
-    shift with it, the CMM and rotations do not see it), so its rows and columns are zero.
-    The chain-rule term a transcription needs for its exact Lagrangian Hessian.
-    """
-    q = check_configuration(model, q)
-    indices = model.frame_indices(frames)
-
-    def weighted(q):
-        out = _bundle(model, q, indices)
-        return sum(jnp.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out)))
-
-    n = q.shape[0]
-    columns = _directional_derivatives(jax.grad(weighted), q, _orientation_and_joint_directions(q))
-    return jnp.zeros((n, n), q.dtype).at[3:].set(columns).at[:, 3:].set(columns.T)
-
-
-def centroidal_kinematics_derivatives(model, q, frames, weights):
-    """``centroidal_kinematics`` at q, its Jacobian and ``centroidal_kinematics_curvature`` for
-    ``weights``, from one pass: (κ, ∂κ/∂q (each output with a trailing (7 + n) axis),
-    Σ_a w_a ∇²_q κ_a (7 + n, 7 + n)).
-
-    Forward-over-reverse through the plain kinematics with one tangent per entry of the
-    orientation and joints: each tangent's forward part is a column of the Jacobian, its reverse
-    part a row of the curvature, so the Jacobian costs little more than the curvature alone (and
-    less than the two computed apart). Every output is affine in the base position, with known
-    columns (``_with_position_columns``): its rows and columns of the curvature are zero, and its
-    tangents are not pushed through (3 of iRonCub's 30)."""
-    q = check_configuration(model, q)
-    indices = model.frame_indices(frames)
-
-    def weighted(q):
-        out = _bundle(model, q, indices)
-        return sum(jnp.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out))), out
-
-    n = q.shape[0]
-    rows, jacobian = _directional_derivatives(jax.grad(weighted, has_aux=True), q, _orientation_and_joint_directions(q))
-    curvature = jnp.zeros((n, n), q.dtype).at[3:].set(rows).at[:, 3:].set(rows.T)
-    return _bundle(model, q, indices), _with_position_columns(jacobian, q), curvature
 
 
 def com_jacobian(model, q):

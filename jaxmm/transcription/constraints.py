@@ -6,7 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmm.rigid_body import so3
-from jaxmm.rigid_body.centroidal import centroidal_kinematics, total_mass
+from jaxmm.rigid_body.centroidal import total_mass
+from jaxmm.rigid_body.centroidal_derivatives import centroidal_kinematics
 from jaxmm.physics.centroidal_dynamics import momentum_rate
 from jaxmm.physics.contacts import friction_cone, normal_complementarity, planar_complementarity
 from jaxmm.physics.jets import thrust_acceleration, thrust_forces

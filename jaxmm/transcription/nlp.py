@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmm.rigid_body.centroidal import centroidal_kinematics_curvature, centroidal_kinematics_derivatives
+from jaxmm.rigid_body.centroidal_derivatives import centroidal_kinematics_curvature, centroidal_kinematics_derivatives
 from jaxmm.transcription import constraints, costs
 from jaxmm.stagewise import KnotHessian, RowSupport, StagewiseFunctions, StagewiseNLP
 from jaxmm.transcription.variables import Trajectory
