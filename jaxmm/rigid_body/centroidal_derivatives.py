@@ -78,7 +78,8 @@ def _base_frame(model, s, frames):
     in s (n,) need: a dict of the tree (``_tree``), the kinematics X (``bundle_from_poses``), the
     motion subspaces S (n, 6), the bodies' spatial inertias (nm, 6, 6), CoMs (nm, 3) [m] and masses
     (nm,) [kg], the subtrees' (composite) inertias (n, 6, 6), the CMM's columns as momenta about
-    the origin F (6 + n, 6) and the CoM's Jacobian Dx (n, 3) (rows: joints)."""
+    the origin F (6 + n, 6), the motions (6, 6) that ṗ and ω stand for (the CMM's first six
+    columns), and the CoM's Jacobian Dx (n, 3) (rows: joints)."""
     q = jnp.concatenate([jnp.asarray(_IDENTITY_BASE, s.dtype), s])
     R_body, p_body = body_poses(model, q)
     composites = body_inertials_world(model, R_body, p_body)
