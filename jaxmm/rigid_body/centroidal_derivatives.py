@@ -212,56 +212,61 @@ def _position_columns(X):
                 frame_rotations=jnp.zeros(X["frame_rotations"].shape + (3,), eye.dtype))
 
 
-def _jacobian(model, q, frames, b=None):
-    """∂κ/∂q, each output of ``centroidal_kinematics`` with a trailing (7 + n) axis."""
-    b = _base_frame(model, q[7:], frames) if b is None else b
+def _jacobian(q, b, base_jacobian):
+    """∂κ/∂q, each output of ``centroidal_kinematics`` with a trailing (7 + n) axis, from the base
+    frame's kinematics b (``_base_frame``) and their Jacobian (``_base_frame_jacobian``)."""
     X = b["X"]
 
-    def world(rho, X):
+    def world(rho):
         return _to_world(so3.quaternion_to_rotation(rho), q[:3], X)
 
     R = so3.quaternion_to_rotation(q[3:7])
-    along_rho = jax.jacfwd(world)(q[3:7], X)
     along_s = jax.vmap(lambda column: _to_world(R, jnp.zeros(3, q.dtype), column), in_axes=-1, out_axes=-1)(
-        _base_frame_jacobian(b))
-    return jax.tree.map(lambda *c: jnp.concatenate(c, -1), _position_columns(X), along_rho, along_s)
+        base_jacobian)
+    return jax.tree.map(lambda *c: jnp.concatenate(c, -1), _position_columns(X), jax.jacfwd(world)(q[3:7]), along_s)
 
 
-def centroidal_kinematics_derivatives(model, q, frames, weights):
-    """``centroidal_kinematics`` at q, its Jacobian and Σ_a w_a ∇²_q κ_a for weights (a pytree of
-    the kinematics' shapes): (κ, ∂κ/∂q (each output with a trailing (7 + n) axis), (7 + n, 7 + n)).
-
-    The base frame's kinematics X(s) and their derivatives come from the tree recursions above;
-    κ = X turned by R(ρ) and moved by p, so the curvature's blocks are: along s, X's curvature
-    weighted by the weights turned back (∂(w·κ)/∂X); across ρ and s, ∂²(w·κ)/∂ρ∂X contracted with
-    ∂X/∂s; along ρ, the Hessian of w·κ in ρ alone (4 × 4). Every output is affine in p: its rows
-    and columns are zero."""
-    q = check_configuration(model, q)
-    indices = model.frame_indices(frames)
-    b = _base_frame(model, q[7:], indices)
+def _curvature(q, weights, b, base_jacobian):
+    """Σ_a w_a ∇²_q κ_a (7 + n, 7 + n). κ = X turned by R(ρ) and moved by p, so the blocks are:
+    along s, X's curvature weighted by the weights turned back (∂(w·κ)/∂X); across ρ and s,
+    ∂²(w·κ)/∂ρ∂X contracted with ∂X/∂s; along ρ, the Hessian of w·κ in ρ alone (4 × 4). Every
+    output is affine in p: its rows and columns are zero."""
+    rho, X = q[3:7], b["X"]
 
     def weighted(rho, X):
         out = _to_world(so3.quaternion_to_rotation(rho), q[:3], X)
         return sum(jnp.sum(w * v) for w, v in zip(jax.tree.leaves(weights), jax.tree.leaves(out)))
 
-    rho, X = q[3:7], b["X"]
-    pulled = jax.grad(weighted, argnums=1)
-    across = jax.jacfwd(pulled)(rho, X)  # each output of X with a trailing (4,) axis
-    base_jacobian = _base_frame_jacobian(b)
+    # ∂(w·κ)/∂X and its derivative along ρ's 4 tangents, from one linearisation
+    pulled, along = jax.linearize(lambda rho: jax.grad(weighted, argnums=1)(rho, X), rho)
+    across = jax.vmap(along, out_axes=-1)(jnp.eye(4, dtype=q.dtype))  # each output of X with a trailing (4,) axis
     rho_s = sum(jnp.tensordot(a, J, axes=(list(range(J.ndim - 1)), list(range(J.ndim - 1))))
                 for a, J in zip(jax.tree.leaves(across), jax.tree.leaves(base_jacobian)))
     n = q.shape[0]
-    curvature = (jnp.zeros((n, n), q.dtype).at[3:7, 3:7].set(jax.hessian(weighted)(rho, X))
-                 .at[3:7, 7:].set(rho_s).at[7:, 3:7].set(rho_s.T)
-                 .at[7:, 7:].set(_base_frame_curvature(b, pulled(rho, X))))
-    return _to_world(so3.quaternion_to_rotation(rho), q[:3], X), _jacobian(model, q, indices, b), curvature
+    return (jnp.zeros((n, n), q.dtype).at[3:7, 3:7].set(jax.hessian(weighted)(rho, X))
+            .at[3:7, 7:].set(rho_s).at[7:, 3:7].set(rho_s.T)
+            .at[7:, 7:].set(_base_frame_curvature(b, pulled)))
+
+
+def centroidal_kinematics_derivatives(model, q, frames, weights):
+    """``centroidal_kinematics`` at q, its Jacobian and Σ_a w_a ∇²_q κ_a for weights (a pytree of
+    the kinematics' shapes): (κ, ∂κ/∂q (each output with a trailing (7 + n) axis), (7 + n, 7 + n)),
+    from one pass of the tree recursions (``_base_frame``, ``_base_frame_jacobian``) shared by the
+    Jacobian and the curvature."""
+    q = check_configuration(model, q)
+    b = _base_frame(model, q[7:], model.frame_indices(frames))
+    base_jacobian = _base_frame_jacobian(b)
+    value = _to_world(so3.quaternion_to_rotation(q[3:7]), q[:3], b["X"])
+    return value, _jacobian(q, b, base_jacobian), _curvature(q, weights, b, base_jacobian)
 
 
 def centroidal_kinematics_curvature(model, q, frames, weights):
     """Σ_a w_a ∇²_q κ_a(q) (7 + n, 7 + n) of ``centroidal_kinematics``' outputs κ for weights (a
     pytree of their shapes): the chain-rule term a transcription needs for its exact Lagrangian
-    Hessian (``centroidal_kinematics_derivatives``)."""
-    return centroidal_kinematics_derivatives(model, q, frames, weights)[2]
+    Hessian (``centroidal_kinematics_derivatives``, without the Jacobian)."""
+    q = check_configuration(model, q)
+    b = _base_frame(model, q[7:], model.frame_indices(frames))
+    return _curvature(q, weights, b, _base_frame_jacobian(b))
 
 
 def _bundle(model, q, frames):
@@ -281,7 +286,8 @@ def _fast_bundle_jvp(frames, primals, tangents):
     tangent = jax.tree.map(jnp.zeros_like, out)
     if not isinstance(q_dot, SymbolicZero):
         # One Jacobian (the tree recursions), then a product: cheap for many input tangents.
-        tangent = jax.tree.map(lambda t, J: t + J @ q_dot, tangent, _jacobian(model, q, frames))
+        b = _base_frame(model, q[7:], frames)
+        tangent = jax.tree.map(lambda t, J: t + J @ q_dot, tangent, _jacobian(q, b, _base_frame_jacobian(b)))
     model_leaves = jax.tree.leaves(model_dot, is_leaf=lambda x: isinstance(x, SymbolicZero))
     if any(not isinstance(leaf, SymbolicZero) for leaf in model_leaves):
         model_dot = jax.tree.map(
