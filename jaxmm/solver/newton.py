@@ -131,7 +131,7 @@ def condensed_solve(chol, system, ax, a_s, a_c):
     """The regularised KKT system [W + Σ, Jᵀ; J, −diag(1/w)] with right-hand sides ax (dual rows
     of (Z, θ)), a_s (dual rows of the slacks) and a_c (constraint rows), by condensing onto
     ``chol``, the factor of W + Σ + Jᵀ diag(w) J (slacks eliminated row by row: dv = w (J dx + c_g +
-    r_s / σ_s), ds = (dv − r_s) / σ_s). Returns (dx, ds, dy)."""
+    r_s / σ_s), ds = (dv − r_s) / σ_s). Returns ((dx, ds, dy), J dx per row group)."""
     J, weights, inv_sigma, m = system.J, system.weights, system.inv_sigma, system.masks
     fz, ft = m.free_z, m.free_theta
     K = fz.shape[0]
@@ -142,15 +142,17 @@ def condensed_solve(chol, system, ax, a_s, a_c):
         rz, rt = rz + pz, rt + pt
     dz, dt = linalg.solve(chol, rz * fz, rt * ft)
     dz, dt = dz * fz, dt * ft
-    dy = tuple(w * (rows.apply(r, dz, dt) - sh) for r, w, sh in zip(J, weights, shifts))
+    Jdx = tuple(rows.apply(r, dz, dt) for r in J)
+    dy = tuple(w * (jd - sh) for jd, w, sh in zip(Jdx, weights, shifts))
     ds = tuple((a + dv) * i for a, dv, i in zip(a_s, dy[2:], inv_sigma))
-    return (dz, dt), ds, dy
+    return ((dz, dt), ds, dy), Jdx
 
 
-def kkt_residual(system, ax, a_s, a_c, dx, ds, dy):
+def kkt_residual(system, ax, a_s, a_c, dx, ds, dy, Jdx):
     """Residual of the exact KKT system (δ_c = 0, the system's own Σ + δ_w and δ_s) at the step
     (dx, ds, dy), the blocks applied to vectors (the masks and the diagonal too: no copy of the
-    blocks)."""
+    blocks). Jdx: J dx per row group, which the caller sums over the refinement's increments
+    (J is linear), so that each refinement passes over the Jacobians three times, not four."""
     J, m = system.J, system.masks
     fz, ft = m.free_z, m.free_theta
     K = fz.shape[0]
@@ -160,7 +162,6 @@ def kkt_residual(system, ax, a_s, a_c, dx, ds, dy):
     for r, dv in zip(J, dy):
         pz, pt = rows.pull(r, dv, K)
         hz, ht = hz + pz, ht + pt
-    Jdx = tuple(rows.apply(r, *dx) for r in J)
     return (
         ((ax[0] - hz) * fz, (ax[1] - ht) * ft),
         tuple(jnp.where(i > 0, a - (sd * d - dv), 0.0)
@@ -179,17 +180,19 @@ def refined_solve(chol, system, rhs, limit):
     floor = REFINEMENT_RATIO * jnp.maximum(1.0, max_abs(jax.tree.leaves(rhs)))
 
     def improving(carry):
-        k, _, _, size, previous = carry
+        k, _, _, _, size, previous = carry
         return (k < limit) & ((k == 0) | ((size > floor) & (size < 0.9 * previous)))
 
     def refine(carry):
-        k, step, residual, size, _ = carry
-        step = jax.tree.map(jnp.add, step, condensed_solve(chol, system, *residual))
-        residual = kkt_residual(system, *rhs, *step)
-        return k + 1, step, residual, max_abs(jax.tree.leaves(residual)), jnp.where(k == 0, jnp.inf, size)
+        k, step, Jstep, residual, size, _ = carry
+        increment, Jincrement = condensed_solve(chol, system, *residual)
+        step, Jstep = jax.tree.map(jnp.add, step, increment), jax.tree.map(jnp.add, Jstep, Jincrement)
+        residual = kkt_residual(system, *rhs, *step, Jstep)
+        return k + 1, step, Jstep, residual, max_abs(jax.tree.leaves(residual)), jnp.where(k == 0, jnp.inf, size)
 
     ax, a_s, a_c = rhs
     zero = tmap(jnp.zeros_like, ax), tmap(jnp.zeros_like, a_s), tmap(jnp.zeros_like, a_c)
     size = max_abs(jax.tree.leaves(rhs))
-    solves, step, _, _, _ = jax.lax.while_loop(improving, refine, (jnp.asarray(0), zero, rhs, size, jnp.asarray(jnp.inf, size.dtype)))
+    carry = (jnp.asarray(0), zero, zero[2], rhs, size, jnp.asarray(jnp.inf, size.dtype))
+    solves, step, _, _, _, _ = jax.lax.while_loop(improving, refine, carry)
     return step, solves
